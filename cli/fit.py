@@ -1,0 +1,125 @@
+"""`splatk fit SCENE --out RUN`: reconstruct a scene from posed photos."""
+from __future__ import annotations
+
+import signal
+from dataclasses import fields
+from pathlib import Path
+
+import click
+from rich.console import Console
+
+from splatk.stages.fit import FitConfig, run_fit
+from splatk.train.trainer import TrainConfig
+
+from .common import load_preset, parse_duration, resolve_options
+from .progress import training_progress
+
+# flag name -> (where it goes in FitConfig, converter)
+_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)}
+
+
+@click.command("fit")
+@click.argument("scene", type=click.Path(path_type=Path), required=False)
+@click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Run folder to write.")
+@click.option("--preset", help="YAML preset name (presets/) or file; command line beats preset.")
+@click.option("--kernel", type=click.Choice(["gaussian", "beta", "student_t", "learned"]), help="Splatting kernel. [default: gaussian]")
+@click.option("--k", "k", type=int, help="Learned kernel: profile samples per primitive (2, 4, 8). [default: 2]")
+@click.option("--kernel-weights", type=click.Path(path_type=Path), help="Learned kernel: pretrained networks from `splatk pretrain`.")
+@click.option("--color", type=click.Choice(["sh", "sb"]), help="Colour model: spherical harmonics or spherical Beta. [default: sh]")
+@click.option("--sh-degree", type=int, help="Maximum SH degree 0-3. [default: 3]")
+@click.option("--primitive", type=click.Choice(["volumetric", "planar"]), help="Primitive type. [default: volumetric]")
+@click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend. [default: auto]")
+@click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
+@click.option("--budget", help="Maximum number of primitives. [default: 100000]")
+@click.option("--iters", type=int, help="Training iterations. [default: 30000]")
+@click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
+@click.option("--downscale", type=float, help="Image downscale factor. [default: 1]")
+@click.option("--init", "init", type=click.Choice(["sfm", "random"]), help="Initial primitives. [default: sfm]")
+@click.option("--seed", type=int, help="Random seed. [default: 0]")
+@click.option("--threads", type=int, help="CPU threads (0: all). [default: 0]")
+@click.option("--checkpoint-every", type=int, help="Checkpoint interval in iterations. [default: 1000]")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing, non-empty --out folder.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.pass_context
+def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
+    """Reconstruct SCENE (COLMAP sparse/0 + images/, or transforms*.json) into RUN."""
+    if scene is None and not resume:
+        raise click.UsageError("SCENE is required (unless --resume)")
+    values, sources = resolve_options(ctx, opts, load_preset(preset))
+    cfg = build_fit_config(values)
+    console = Console(stderr=True)
+    progress = None if quiet else training_progress(console)
+    task = {}
+
+    def on_start(info):
+        s = info["scene"]
+        console.print(
+            f"[bold]splatk fit[/] {s.root}: {len(s.train)} train / {len(s.test)} test views "
+            f"{s.train[0].width}x{s.train[0].height}, {info['model'].num_primitives:,} initial primitives, "
+            f"kernel {cfg.kernel}, backend {cfg.train.backend}"
+        )
+        if progress is not None:
+            progress.start()
+            task["id"] = progress.add_task("fit", total=info["iters"], completed=info["start_it"],
+                                           loss=0.0, psnr=0.0, num=info["model"].num_primitives, rate=0.0)
+
+    def on_step(info):
+        if info.event:
+            console.print(f"[yellow]{info.event}")
+        if progress is not None and (info.it % 10 == 0 or info.it == info.iters):
+            rate = info.it / info.elapsed if info.elapsed > 0 else 0.0
+            total = info.iters
+            if cfg.train.time_budget and rate > 0:
+                total = min(info.iters, max(info.it, int(rate * cfg.train.time_budget)))
+            progress.update(task["id"], completed=info.it, total=total, loss=info.loss, psnr=info.psnr,
+                            num=info.num_primitives, rate=rate)
+
+    stop = {"flag": False}
+
+    def handle_sigterm(signum, frame):
+        stop["flag"] = True
+
+    old = signal.signal(signal.SIGTERM, handle_sigterm)
+    try:
+        run = run_fit(scene, out, cfg, overwrite=overwrite, resume=resume, config_sources=sources,
+                      on_start=on_start, on_step=on_step, should_stop=lambda: stop["flag"])
+    except KeyboardInterrupt:
+        if progress is not None:
+            progress.stop()
+        console.print(f"[yellow]interrupted; checkpoint saved, continue with: splatk fit --resume --out {out}")
+        raise SystemExit(130)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if progress is not None:
+            progress.stop()
+    console.print(f"wrote {run / 'model.pt'}")
+
+
+def build_fit_config(values: dict) -> FitConfig:
+    cfg = FitConfig()
+    v = {k: x for k, x in values.items() if x is not None}
+    for name in ("kernel", "color", "sh_degree", "primitive", "backend", "device", "downscale", "threads",
+                 "checkpoint_every"):
+        if name in v:
+            setattr(cfg, name, v[name])
+    if "k" in v:
+        cfg.kernel_options["k"] = int(v["k"])
+    if "kernel_weights" in v:
+        cfg.kernel_options["weights"] = str(v["kernel_weights"])
+    t = cfg.train
+    if "budget" in v:
+        try:
+            t.budget = int(float(v["budget"]))
+        except ValueError:
+            raise click.BadParameter(f"--budget {v['budget']!r}: give a number of primitives") from None
+    for name in ("iters", "seed", "init"):
+        if name in v:
+            setattr(t, name, v[name])
+    if "time_budget" in v:
+        t.time_budget = parse_duration(v["time_budget"])
+        if "iters" not in v:
+            t.iters = 10**9  # the clock decides
+    t.backend = cfg.backend
+    t.device = cfg.device
+    return cfg

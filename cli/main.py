@@ -1,0 +1,70 @@
+"""The `splatk` command: a click group; each sub-command lives in its own module."""
+from __future__ import annotations
+
+import sys
+import traceback
+
+import click
+
+from splatk.errors import BackendUnavailable, InputError
+
+
+class SplatkGroup(click.Group):
+    """Turns input errors into one line and exit code 2; tracebacks only with -v."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except InputError as e:
+            if ctx.obj and ctx.obj.get("verbose"):
+                traceback.print_exc()
+            click.echo(f"splatk: error: {e.message()}", err=True)
+            sys.exit(2)
+        except BackendUnavailable as e:
+            click.echo(f"splatk: error: {e}", err=True)
+            sys.exit(2)
+        except OSError as e:
+            if ctx.obj and ctx.obj.get("verbose"):
+                traceback.print_exc()
+            where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+            click.echo(f"splatk: error: {where}{e.strerror or e}", err=True)
+            sys.exit(2)
+
+
+@click.group(cls=SplatkGroup, context_settings={"help_option_names": ["-h", "--help"],
+                                                 "auto_envvar_prefix": "SPLATK"})
+@click.option("-v", "--verbose", is_flag=True, help="Show full tracebacks on errors.")
+@click.version_option(package_name="splatk")
+@click.pass_context
+def cli(ctx: click.Context, verbose: bool) -> None:
+    """splatk: splatting-based novel view synthesis with learned, view-dependent kernels.
+
+    Typical use: `splatk fit SCENE --out RUN`, then `splatk eval RUN` and
+    `splatk export RUN --format ply --out model.ply`.
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["verbose"] = verbose
+
+
+def _register() -> None:
+    import importlib
+
+    for name in ("fit", "evaluate", "export", "compare", "pretrain", "image", "sfm", "bench", "demo"):
+        try:
+            mod = importlib.import_module(f"splatk_cli.{name}")
+        except ModuleNotFoundError as e:
+            if e.name == f"splatk_cli.{name}":
+                continue
+            raise
+        cli.add_command(mod.command)
+
+
+_register()
+
+
+def main() -> None:
+    cli(prog_name="splatk")
+
+
+if __name__ == "__main__":
+    main()

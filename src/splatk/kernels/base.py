@@ -1,0 +1,67 @@
+"""What a splatting kernel is: a name, its support, its per-primitive parameters, and how it
+turns a view of the primitives into the radial profile the rasteriser composites."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from ..backends import Profile
+
+
+@dataclass
+class ViewContext:
+    """Camera-space attributes of the primitives visible in one view (paper Eq. 5 inputs).
+
+    Attributes:
+        means_cam: [M, 3] camera-space centres.
+        scales: [M, 3] activated scales.
+        rotmats_cam: [M, 3, 3] primitive rotations in camera space.
+    """
+
+    means_cam: torch.Tensor
+    scales: torch.Tensor
+    rotmats_cam: torch.Tensor
+
+
+class Kernel(nn.Module):
+    """Base class. Subclasses set ``name`` and ``support_sigmas`` and override the hooks.
+
+    A kernel's ``nn.Module`` parameters are its *global* networks (the learned kernel's
+    Phi_proj / Phi_dec); per-primitive parameters live in the model's parameter dict under
+    the names returned by :meth:`init_primitive_params`.
+    """
+
+    name: str = "base"
+    #: support of the profile in units of the projected sigma (bounding ellipse at r = 1)
+    support_sigmas: float = 3.0
+
+    def init_primitive_params(self, n: int, device: torch.device) -> dict[str, torch.Tensor]:
+        """Raw (pre-activation) per-primitive parameters for ``n`` new primitives."""
+        return {}
+
+    def learning_rates(self) -> dict[str, float]:
+        """Learning rate of each per-primitive parameter this kernel owns."""
+        return {}
+
+    def profile(self, prims: dict[str, torch.Tensor], view: ViewContext) -> Profile:
+        """The profile for the visible primitives (``prims`` holds their rows only)."""
+        raise NotImplementedError
+
+    def network_learning_rate(self, it: int, progress: float) -> float:
+        """LR of the global networks at iteration ``it`` / progress in [0, 1] (0 = frozen)."""
+        return 0.0
+
+    def gaussian_scale_factor(self, prims: dict[str, torch.Tensor]) -> torch.Tensor | float:
+        """Per-primitive factor f such that a Gaussian of scale ``f * scale`` best matches this
+        kernel's footprint ([N] or a float); used to bake kernels into a 3DGS PLY."""
+        return 1.0
+
+
+KERNELS: dict[str, type[Kernel]] = {}
+
+
+def register_kernel(cls: type[Kernel]) -> type[Kernel]:
+    KERNELS[cls.name] = cls
+    return cls

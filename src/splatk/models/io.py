@@ -1,0 +1,79 @@
+"""Saving and loading trained models in splatk's native format (a torch file)."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+
+from ..colors import make_color_model
+from ..kernels import make_kernel
+from .volumetric import SplatModel
+
+FORMAT_VERSION = 1
+
+
+def atomic_torch_save(obj, path: str | Path) -> Path:
+    """Write to a temp file in the same folder, fsync, then rename: a crash never leaves a
+    half-written file in place of a good one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def model_spec(model: SplatModel, kernel_options: dict, color_options: dict) -> dict:
+    return {
+        "kernel": model.kernel.name,
+        "kernel_options": dict(kernel_options),
+        "color": model.color.name,
+        "color_options": dict(color_options),
+    }
+
+
+def save_model(model: SplatModel, path, spec: dict, meta: dict | None = None) -> Path:
+    obj = {
+        "format": "splatk-model",
+        "version": FORMAT_VERSION,
+        "spec": spec,
+        "prims": {k: v.detach().cpu() for k, v in model.prims.items()},
+        "kernel_state": {k: v.cpu() for k, v in model.kernel.state_dict().items()},
+        "meta": meta or {},
+    }
+    return atomic_torch_save(obj, path)
+
+
+def build_model(spec: dict, prims: dict, kernel_state: dict | None = None) -> SplatModel:
+    kernel = make_kernel(spec["kernel"], **spec.get("kernel_options", {}))
+    color = make_color_model(spec["color"], **spec.get("color_options", {}))
+    model = SplatModel(kernel, color, prims)
+    if kernel_state:
+        kernel.load_state_dict(kernel_state)
+    return model
+
+
+def load_model(path) -> tuple[SplatModel, dict]:
+    from ..errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "model file not found", "run `splatk fit` first")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # corrupt / truncated
+        raise InputError(path, f"cannot read model ({type(e).__name__})", "re-run `splatk fit`") from e
+    if not isinstance(obj, dict) or obj.get("format") != "splatk-model":
+        raise InputError(path, "not a splatk model file")
+    model = build_model(obj["spec"], obj["prims"], obj.get("kernel_state"))
+    return model, {"spec": obj["spec"], **obj.get("meta", {})}

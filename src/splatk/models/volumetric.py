@@ -1,0 +1,142 @@
+"""Volumetric primitives: bounding ellipsoids plus a kernel and a colour model."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..backends import RasterOutput, rasterize
+from ..colors import ColorModel, make_color_model
+from ..functional.projection import project_ellipsoids
+from ..kernels import Kernel, ViewContext, make_kernel
+
+#: geometric per-primitive parameters every volumetric model has (raw, pre-activation)
+GEOMETRY_PARAMS = ("means", "log_scales", "quats", "opacity_logits")
+
+
+class SplatModel(nn.Module):
+    """A scene of N volumetric primitives.
+
+    Per-primitive tensors (first dim N) live in ``self.prims``: means [N, 3], log_scales [N, 3],
+    quats [N, 4] (w, x, y, z), opacity_logits [N], plus the colour model's and the kernel's.
+    Global networks (the learned kernel's MLPs) are parameters of ``self.kernel``.
+    """
+
+    def __init__(self, kernel: Kernel, color: ColorModel, prims: dict[str, torch.Tensor]):
+        super().__init__()
+        self.kernel = kernel
+        self.color = color
+        self.prims = nn.ParameterDict({k: nn.Parameter(v.contiguous()) for k, v in prims.items()})
+
+    # ---- construction -------------------------------------------------------------------
+    @classmethod
+    def from_points(
+        cls,
+        points: torch.Tensor,
+        colors: torch.Tensor,
+        kernel: Kernel | str = "gaussian",
+        color: ColorModel | str = "sh",
+        init_opacity: float = 0.5,
+        scale_factor: float = 1.0,
+        kernel_options: dict | None = None,
+        color_options: dict | None = None,
+    ) -> "SplatModel":
+        """Init as DBS does: scale = sqrt(mean squared distance to the 3 nearest neighbours),
+        identity rotations, opacity 0.5, base colour from the points."""
+        if isinstance(kernel, str):
+            kernel = make_kernel(kernel, **(kernel_options or {}))
+        if isinstance(color, str):
+            color = make_color_model(color, **(color_options or {}))
+        n = points.shape[0]
+        dist = knn_mean_sq_dist(points, k=3).clamp_min(1e-7).sqrt() * scale_factor
+        prims = {
+            "means": points.float().clone(),
+            "log_scales": torch.log(dist)[:, None].repeat(1, 3),
+            "quats": torch.cat([torch.ones(n, 1), torch.zeros(n, 3)], 1),
+            "opacity_logits": torch.logit(torch.full((n,), init_opacity)),
+        }
+        prims.update(color.init_primitive_params(colors.float().clamp(0, 1)))
+        prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
+        return cls(kernel, color, prims)
+
+    # ---- accessors ----------------------------------------------------------------------
+    @property
+    def num_primitives(self) -> int:
+        return self.prims["means"].shape[0]
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.prims["log_scales"])
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.prims["opacity_logits"])
+
+    def floats_per_primitive(self) -> int:
+        return sum(int(v[0].numel()) for v in self.prims.values())
+
+    def footprint_bytes(self) -> int:
+        """float32 bytes of everything stored: per-primitive parameters and global networks."""
+        per_prim = 4 * self.floats_per_primitive() * self.num_primitives
+        nets = 4 * sum(p.numel() for p in self.kernel.parameters())
+        return per_prim + nets
+
+    def learning_rates(self) -> dict[str, float]:
+        lrs = {"log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05}  # 3DGS-MCMC
+        lrs.update(self.color.learning_rates())
+        lrs.update(self.kernel.learning_rates())
+        return lrs
+
+    # ---- rendering ----------------------------------------------------------------------
+    def render(
+        self,
+        camera,
+        background: torch.Tensor,
+        sh_degree: int = 3,
+        backend: str = "auto",
+    ) -> "RenderResult":
+        """Render one camera. Differentiable in every parameter."""
+        dev = self.prims["means"].device
+        viewmat = camera.world_to_cam.to(dev)
+        K = camera.K.to(dev)
+        scales = self.scales
+        proj = project_ellipsoids(
+            self.prims["means"], self.prims["quats"], scales, viewmat, K,
+            camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
+        )
+        idx = torch.nonzero(proj.visible).flatten()
+        vis = {k: v[idx] for k, v in self.prims.items()}
+        cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree)
+        view = ViewContext(proj.means_cam[idx], scales[idx], proj.rotmats_cam[idx])
+        profile = self.kernel.profile(vis, view)
+        out: RasterOutput = rasterize(
+            proj.means2d[idx], proj.conics[idx], torch.sigmoid(vis["opacity_logits"]), rgb,
+            proj.depths[idx].detach(), profile, camera.width, camera.height,
+            background=background.to(dev), backend=backend,
+        )
+        return RenderResult(out.colors, out.alphas, idx)
+
+
+class RenderResult(NamedTuple):
+    """image [H, W, 3], alpha [H, W, 1], visible [M] indices of the rendered primitives."""
+
+    image: torch.Tensor
+    alpha: torch.Tensor
+    visible: torch.Tensor
+
+
+def knn_mean_sq_dist(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """Mean squared distance of each point to its k nearest other points ([N])."""
+    n = points.shape[0]
+    if n <= 1:
+        return torch.ones(n)
+    from scipy.spatial import cKDTree
+
+    pts = points.detach().cpu().double().numpy()
+    kk = min(k, n - 1)
+    d, _ = cKDTree(pts).query(pts, k=kk + 1)
+    d = d[:, 1:] if kk > 0 else d
+    return torch.from_numpy((d**2).mean(1)).float()

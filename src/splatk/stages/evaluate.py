@@ -1,0 +1,87 @@
+"""`splatk eval`: render the held-out views of a run and measure them.
+
+Writes RUN/metrics.json: ``mean`` (psnr, ssim, lpips), ``per_view`` values, ``num_primitives``,
+``footprint_mb``, ``render_ms`` (median per view, wall clock, this machine) and how it was
+measured (backend, threads, LPIPS network).
+"""
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from ..data import load_scene
+from ..errors import InputError
+from ..metrics import compute_metrics
+from ..models.io import load_model
+
+
+def run_eval(
+    run: str | Path,
+    metrics: tuple[str, ...] = ("psnr", "ssim"),
+    lpips_net: str = "alex",
+    backend: str = "auto",
+    scene_path: str | Path | None = None,
+    split: str = "test",
+    save_renders: bool = False,
+    on_view: Callable[[int, int], None] | None = None,
+) -> dict:
+    run = Path(run)
+    model, meta = load_model(run / "model.pt")
+    scene_path = scene_path or meta.get("scene")
+    if not scene_path or not Path(scene_path).exists():
+        raise InputError(scene_path or run, "scene folder of this run not found", "pass --scene")
+    scene = load_scene(scene_path, downscale=meta.get("downscale", 1.0),
+                       test_every=meta.get("test_every", 8),
+                       background=tuple(meta["background"]) if meta.get("background") else None)
+    cams = scene.test if split == "test" else scene.train
+    if not cams:
+        raise InputError(scene_path, f"the scene has no {split} views")
+    bg = torch.tensor(scene.background, dtype=torch.float32)
+    per_view, times, warnings = [], [], []
+    render_dir = run / "renders" / split
+    if save_renders:
+        render_dir.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():
+        model.render(cams[0], bg, backend=backend)  # warm-up (native build, caches)
+        for i, cam in enumerate(cams):
+            t0 = time.perf_counter()
+            out = model.render(cam, bg, backend=backend)
+            times.append((time.perf_counter() - t0) * 1000)
+            img = out.image.clamp(0, 1)
+            m = compute_metrics(img, cam.image_float(), metrics, lpips_net=lpips_net)
+            warnings += m.pop("warnings", [])
+            per_view.append({"view": cam.name, **m})
+            if save_renders:
+                from .export import write_png
+
+                write_png(render_dir / f"{Path(cam.name).stem}.png", img)
+            if on_view:
+                on_view(i + 1, len(cams))
+    keys = [k for k in metrics if all(v.get(k) is not None for v in per_view)]
+    mean = {k: float(sum(v[k] for v in per_view) / len(per_view)) for k in keys}
+    for k in metrics:
+        mean.setdefault(k, None)
+    result = {
+        "run": str(run),
+        "split": split,
+        "num_views": len(per_view),
+        "mean": mean,
+        "per_view": per_view,
+        "num_primitives": model.num_primitives,
+        "footprint_mb": model.footprint_bytes() / 2**20,
+        "render_ms": statistics.median(times),
+        "render_ms_mean": sum(times) / len(times),
+        "backend": backend,
+        "threads": torch.get_num_threads(),
+        "lpips_net": lpips_net if "lpips" in metrics else None,
+        "kernel": meta["spec"]["kernel"],
+        "color": meta["spec"]["color"],
+        "warnings": sorted(set(warnings)),
+    }
+    (run / "metrics.json").write_text(json.dumps(result, indent=2))
+    return result

@@ -1,0 +1,250 @@
+"""The training loop: render a random train view, DBS loss, Adam, MCMC density control.
+
+Knows nothing of the CLI: progress goes to an ``on_step`` callback, stopping is asked of a
+``should_stop`` callback (Ctrl-C handling, time budgets), and the whole state - parameters,
+optimiser moments, RNGs, density-control statistics, elapsed time - round-trips through
+:meth:`Trainer.state_dict` / :meth:`Trainer.load_state_dict`, which checkpoints, resume and
+NaN rollback all use.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import random
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..data.types import Scene
+from ..models.volumetric import SplatModel
+from .losses import photometric_loss, regularisers
+from .mcmc import MCMCConfig, MCMCStrategy
+from .optim import PrimitiveAdam
+
+
+@dataclass
+class TrainConfig:
+    """Training settings (defaults: 3DGS-MCMC learning rates, DBS loss and density control)."""
+
+    iters: int = 30_000
+    #: wall-clock budget in seconds (None: none); schedules follow max(iteration, time) progress
+    time_budget: float | None = None
+    budget: int = 100_000
+    init: str = "sfm"
+    random_points: int = 100_000
+    seed: int = 0
+    lambda_dssim: float = 0.2
+    opacity_reg: float = 0.01
+    scale_reg: float = 0.01
+    means_lr: float = 1.6e-4
+    means_lr_final: float = 1.6e-6
+    sh_degree_interval: int = 1000
+    refine_every: int = 100
+    refine_start: int = 500
+    refine_stop: float = 25 / 30
+    noise_lr: float = 5e4
+    backend: str = "auto"
+    device: str = "cpu"
+    #: keep an in-memory snapshot this often for NaN rollback
+    snapshot_every: int = 200
+
+
+@dataclass
+class StepInfo:
+    it: int
+    iters: int
+    loss: float
+    psnr: float
+    num_primitives: int
+    elapsed: float
+    progress: float
+    event: str | None = None
+
+
+class Trainer:
+    def __init__(self, scene: Scene, model: SplatModel, config: TrainConfig):
+        self.scene = scene
+        self.cfg = config
+        self.device = torch.device(config.device)
+        self.model = model.to(self.device)
+        self.background = torch.tensor(scene.background, dtype=torch.float32, device=self.device)
+        self.extent = scene.extent
+        self.it = 0
+        self.elapsed = 0.0
+        self.events: list[dict] = []
+        self.lr_scale = 1.0  # lowered after a NaN rollback
+        self.view_gen = torch.Generator().manual_seed(config.seed)
+        self.mcmc_gen = torch.Generator(device=self.device).manual_seed(config.seed + 1)
+        self._view_queue: list[int] = []
+        self.strategy = MCMCStrategy(
+            MCMCConfig(
+                cap_max=config.budget, refine_every=config.refine_every,
+                refine_start=config.refine_start, refine_stop=config.refine_stop,
+                noise_lr=config.noise_lr,
+            )
+        )
+        self._build_optimizers()
+        self.targets = [c.image_float(self.device) for c in scene.train]
+        self._snapshot = None
+
+    # ---- optimisers and schedules ------------------------------------------------------
+    def _build_optimizers(self) -> None:
+        lrs = self.model.learning_rates()
+        lrs["means"] = self.cfg.means_lr * self.extent
+        self.opt = PrimitiveAdam(self.model.prims, lrs)
+        net_params = list(self.model.kernel.parameters())
+        self.net_opt = torch.optim.Adam(net_params, lr=0.0) if net_params else None
+
+    def progress(self) -> float:
+        p = self.it / max(1, self.cfg.iters)
+        if self.cfg.time_budget:
+            p = max(p, self.elapsed / self.cfg.time_budget)
+        return min(1.0, p)
+
+    def means_lr(self, progress: float) -> float:
+        """Log-linear decay 1.6e-4 -> 1.6e-6, times the scene extent (3DGS)."""
+        lo, hi = self.cfg.means_lr_final, self.cfg.means_lr
+        return math.exp((1 - progress) * math.log(hi) + progress * math.log(lo)) * self.extent
+
+    def sh_degree(self) -> int:
+        return self.it // self.cfg.sh_degree_interval
+
+    def _next_view(self) -> int:
+        if not self._view_queue:
+            self._view_queue = torch.randperm(len(self.targets), generator=self.view_gen).tolist()
+        return self._view_queue.pop()
+
+    # ---- one iteration -----------------------------------------------------------------
+    def train_step(self) -> StepInfo:
+        t0 = time.perf_counter()
+        self.it += 1
+        p = self.progress()
+        means_lr = self.means_lr(p) * self.lr_scale
+        self.opt.set_lr("means", means_lr)
+        if self.lr_scale != 1.0:
+            for name, lr in self.opt.base_lrs.items():
+                if name != "means":
+                    self.opt.set_lr(name, lr * self.lr_scale)
+        if self.net_opt is not None:
+            for g in self.net_opt.param_groups:
+                g["lr"] = self.model.kernel.network_learning_rate(self.it, p) * self.lr_scale
+        vi = self._next_view()
+        cam = self.scene.train[vi]
+        target = self.targets[vi]
+        out = self.model.render(cam, self.background, sh_degree=self.sh_degree(), backend=self.cfg.backend)
+        loss = photometric_loss(out.image, target, self.cfg.lambda_dssim)
+        loss = loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
+        event = None
+        if not torch.isfinite(loss):
+            event = self._rollback("non-finite loss")
+        else:
+            self.opt.zero_grad()
+            if self.net_opt is not None:
+                self.net_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            self.opt.step()
+            if self.net_opt is not None and any(g["lr"] > 0 for g in self.net_opt.param_groups):
+                self.net_opt.step()
+            with torch.no_grad():
+                self.model.prims["quats"].data = torch.nn.functional.normalize(self.model.prims["quats"].data, dim=-1)
+            if not self._params_finite():
+                event = self._rollback("non-finite parameters")
+            else:
+                self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
+                if self.it % self.cfg.snapshot_every == 0:
+                    self._snapshot = self.state_dict()
+        with torch.no_grad():
+            mse = ((out.image.detach().clamp(0, 1) - target) ** 2).mean().item()
+        self.elapsed += time.perf_counter() - t0
+        return StepInfo(
+            self.it, self.cfg.iters, float(loss.detach()), -10 * math.log10(max(mse, 1e-10)),
+            self.model.num_primitives, self.elapsed, self.progress(), event,
+        )
+
+    def _params_finite(self) -> bool:
+        return all(bool(torch.isfinite(p).all()) for p in self.model.prims.values()) and all(
+            bool(torch.isfinite(p).all()) for p in self.model.kernel.parameters()
+        )
+
+    def _rollback(self, reason: str) -> str:
+        """Never die of a NaN: restore the last good state, halve the step sizes, go on."""
+        it = self.it
+        if self._snapshot is not None:
+            elapsed = self.elapsed
+            self.load_state_dict(self._snapshot)
+            self.elapsed = elapsed
+        else:  # NaN before the first snapshot: drop the non-finite primitives' updates
+            with torch.no_grad():
+                for p in self.model.prims.values():
+                    p.data = torch.nan_to_num(p.data, nan=0.0, posinf=0.0, neginf=0.0)
+        self.lr_scale *= 0.5
+        msg = f"iteration {it}: {reason}; rolled back to iteration {self.it}, step size x{self.lr_scale:g}"
+        self.events.append({"iteration": it, "event": "nan_rollback", "message": msg})
+        return msg
+
+    # ---- the loop ----------------------------------------------------------------------
+    def done(self) -> bool:
+        if self.it >= self.cfg.iters:
+            return True
+        return bool(self.cfg.time_budget) and self.elapsed >= self.cfg.time_budget
+
+    def run(
+        self,
+        on_step: Callable[[StepInfo], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        on_checkpoint: Callable[["Trainer"], None] | None = None,
+        checkpoint_every: int = 1000,
+    ) -> None:
+        torch.manual_seed(self.cfg.seed + self.it)
+        while not self.done():
+            info = self.train_step()
+            if on_step:
+                on_step(info)
+            if on_checkpoint and self.it % checkpoint_every == 0:
+                on_checkpoint(self)
+            if should_stop and should_stop():
+                break
+
+    # ---- state ---------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "it": self.it,
+            "elapsed": self.elapsed,
+            "lr_scale": self.lr_scale,
+            "events": list(self.events),
+            "prims": {k: v.detach().clone() for k, v in self.model.prims.items()},
+            "kernel": copy.deepcopy(self.model.kernel.state_dict()),
+            "opt": copy.deepcopy(self.opt.state_dict()),
+            "net_opt": copy.deepcopy(self.net_opt.state_dict()) if self.net_opt else None,
+            "view_gen": self.view_gen.get_state(),
+            "mcmc_gen": self.mcmc_gen.get_state(),
+            "view_queue": list(self._view_queue),
+            "torch_rng": torch.get_rng_state(),
+            "numpy_rng": np.random.get_state(),
+            "python_rng": random.getstate(),
+            "config": asdict(self.cfg),
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.it = sd["it"]
+        self.elapsed = sd["elapsed"]
+        self.lr_scale = sd.get("lr_scale", 1.0)
+        self.events = list(sd.get("events", []))
+        self.model.prims = nn.ParameterDict(
+            {k: nn.Parameter(v.clone().to(self.device)) for k, v in sd["prims"].items()}
+        )
+        self.model.kernel.load_state_dict(sd["kernel"])
+        self._build_optimizers()
+        self.opt.load_state_dict(sd["opt"])
+        if self.net_opt is not None and sd.get("net_opt") is not None:
+            self.net_opt.load_state_dict(sd["net_opt"])
+        self.view_gen.set_state(sd["view_gen"])
+        self.mcmc_gen.set_state(sd["mcmc_gen"])
+        self._view_queue = list(sd["view_queue"])
+        torch.set_rng_state(sd["torch_rng"])
+        np.random.set_state(sd["numpy_rng"])
+        random.setstate(sd["python_rng"])
