@@ -11,7 +11,7 @@ def photometric_loss(image: torch.Tensor, target: torch.Tensor, lambda_dssim: fl
     l1 = (image - target).abs().mean()
     if lambda_dssim <= 0:
         return l1
-    s = ssim(image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None])
+    s = ssim(image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s)
 
 
