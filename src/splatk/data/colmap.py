@@ -1,0 +1,334 @@
+"""COLMAP scenes: ``root/sparse/0`` (or ``root/sparse``) read with pycolmap, images in ``root/images``.
+
+Every camera comes out as an undistorted pinhole (see :mod:`splatk.data._common`). The model
+files are checked structurally before pycolmap sees them, so a truncated or corrupt
+``cameras.bin`` / ``images.bin`` / ``points3D.bin`` gives an :class:`InputError` naming the file
+instead of pycolmap's ``IndexError: Rig with ID ... does not exist`` or ``std::bad_alloc``.
+"""
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import torch
+
+from ..errors import InputError
+from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, image_size, make_camera,
+                      read_image, rigid_or_none, split_every)
+from .types import Scene
+
+#: COLMAP camera models splatk undistorts (params order as in COLMAP's models.h)
+SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+_MODEL_FILES = ("cameras", "images", "points3D")
+
+
+def _model_num_params() -> dict[int, tuple[str, int]]:
+    """COLMAP model id -> (name, number of params), from pycolmap itself."""
+    table = {}
+    for name, mid in pycolmap.CameraModelId.__members__.items():
+        if name == "INVALID":
+            continue
+        try:
+            cam = pycolmap.Camera.create_from_model_id(1, mid, 1.0, 2, 2)
+            table[int(mid)] = (name, len(cam.params))
+        except Exception:  # pragma: no cover - a model pycolmap cannot instantiate
+            pass
+    return table
+
+
+def _unsupported(path: Path, name: str, where: str) -> InputError:
+    return InputError(path, f"{where} uses camera model {name}, which splatk does not support",
+                      f"supported: {', '.join(SUPPORTED_MODELS)}; undistort the images first "
+                      "(colmap image_undistorter) or re-run SfM with one of these models")
+
+
+def find_model_dir(root: Path) -> Path | None:
+    """``root/sparse/0`` or ``root/sparse`` holding cameras.bin / cameras.txt, else None."""
+    for d in (root / "sparse" / "0", root / "sparse"):
+        if (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file():
+            return d
+    return None
+
+
+# ----------------------------------------------------------------------------------------------
+# structural checks of the model files (cheap, before pycolmap parses them)
+
+
+class _Reader:
+    def __init__(self, path: Path):
+        self.path = path
+        self.buf = path.read_bytes()
+        self.pos = 0
+
+    def truncated(self, what: str) -> InputError:
+        return InputError(self.path, f"is truncated or corrupt ({what} at byte {self.pos} of {len(self.buf)})",
+                          "re-copy the file or re-export the COLMAP model")
+
+    def take(self, fmt: str, what: str) -> tuple:
+        n = struct.calcsize(fmt)
+        if self.pos + n > len(self.buf):
+            raise self.truncated(f"file ends inside {what}")
+        vals = struct.unpack_from(fmt, self.buf, self.pos)
+        self.pos += n
+        return vals
+
+    def skip(self, n: int, what: str) -> None:
+        if n < 0 or self.pos + n > len(self.buf):
+            raise self.truncated(f"file ends inside {what}")
+        self.pos += n
+
+    def count(self, min_record: int, what: str) -> int:
+        (n,) = self.take("<Q", f"the number of {what}")
+        if n * min_record > len(self.buf) - self.pos:
+            raise self.truncated(f"{n} {what} cannot fit in the file")
+        return n
+
+    def done(self) -> None:
+        if self.pos != len(self.buf):
+            raise InputError(self.path, f"has {len(self.buf) - self.pos} unexpected bytes after the last record",
+                             "the file is corrupt; re-copy it or re-export the COLMAP model")
+
+
+def _check_binary(model: Path) -> None:
+    """Validate cameras.bin / images.bin / points3D.bin layouts (COLMAP's model/reconstruction_io)."""
+    models = _model_num_params()
+    r = _Reader(model / "cameras.bin")
+    camera_ids = set()
+    for _ in range(r.count(24, "cameras")):
+        cid, mid, w, h = r.take("<iiQQ", "a camera record")
+        if mid not in models:
+            raise r.truncated(f"unknown camera model id {mid}")
+        name, nparams = models[mid]
+        if name not in SUPPORTED_MODELS:
+            raise _unsupported(r.path, name, f"camera {cid}")
+        params = r.take(f"<{nparams}d", "camera parameters")
+        if not (0 < w < 1 << 20 and 0 < h < 1 << 20) or not np.all(np.isfinite(params)):
+            raise InputError(r.path, f"camera {cid} has an invalid size {w}x{h} or non-finite parameters",
+                             "re-export the COLMAP model")
+        camera_ids.add(cid)
+    r.done()
+
+    r = _Reader(model / "images.bin")
+    for _ in range(r.count(64 + 4 + 1 + 8, "images")):
+        iid, *_pose, cid = r.take("<i7di", "an image record")
+        end = r.buf.find(b"\0", r.pos)
+        if end < 0:
+            raise r.truncated("file ends inside an image name")
+        name = r.buf[r.pos:end].decode("utf-8", "replace")
+        r.pos = end + 1
+        if cid not in camera_ids:
+            raise InputError(r.path, f"image {name!r} refers to camera {cid}, which cameras.bin does not have",
+                             "the model files do not belong together; re-export the COLMAP model")
+        (npts,) = r.take("<Q", f"the keypoint count of image {name!r}")
+        r.skip(24 * npts, f"the keypoints of image {name!r}")
+    r.done()
+
+    r = _Reader(model / "points3D.bin")
+    for _ in range(r.count(8 + 24 + 3 + 8 + 8, "points")):
+        r.take("<Q3d3Bd", "a point record")
+        (ntrack,) = r.take("<Q", "a track length")
+        r.skip(8 * ntrack, "a point track")
+    r.done()
+
+
+def _check_text(model: Path) -> None:
+    """Validate cameras.txt / images.txt / points3D.txt token counts."""
+    models = {name: n for name, n in _model_num_params().values()}
+
+    def lines(path: Path):
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise InputError(path, "is not a text file", "re-export the COLMAP model as text") from None
+        return text.splitlines()
+
+    def bad(path: Path, lineno: int, what: str) -> InputError:
+        return InputError(path, f"line {lineno}: {what}", "the file is corrupt; re-export the COLMAP model")
+
+    path = model / "cameras.txt"
+    for i, line in enumerate(lines(path), 1):
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        if len(tok) < 4:
+            raise bad(path, i, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+        if tok[1] not in models:
+            raise bad(path, i, f"unknown camera model {tok[1]!r}")
+        if tok[1] not in SUPPORTED_MODELS:
+            raise _unsupported(path, tok[1], f"line {i}")
+        if len(tok) != 4 + models[tok[1]]:
+            raise bad(path, i, f"{tok[1]} needs {models[tok[1]]} parameters, found {len(tok) - 4}")
+        try:
+            [float(t) for t in tok[2:]]
+        except ValueError:
+            raise bad(path, i, "non-numeric value") from None
+
+    path = model / "images.txt"
+    all_lines = lines(path)
+    i = 0
+    while i < len(all_lines):
+        tok = all_lines[i].split()
+        i += 1
+        if not tok or tok[0].startswith("#"):
+            continue
+        if len(tok) < 10:
+            raise bad(path, i, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
+        try:
+            [float(t) for t in tok[1:9]]
+        except ValueError:
+            raise bad(path, i, "non-numeric pose") from None
+        if i >= len(all_lines):
+            raise bad(path, i, "file ends before the POINTS2D line of this image")
+        if len(all_lines[i].split()) % 3:
+            raise bad(path, i + 1, "POINTS2D must be (X, Y, POINT3D_ID) triples")
+        i += 1
+
+    path = model / "points3D.txt"
+    for i, line in enumerate(lines(path), 1):
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        if len(tok) < 8 or len(tok) % 2:
+            raise bad(path, i, "expected POINT3D_ID X Y Z R G B ERROR TRACK[] (pairs)")
+        try:
+            [float(t) for t in tok[1:8]]
+        except ValueError:
+            raise bad(path, i, "non-numeric value") from None
+
+
+def _read_reconstruction(model: Path) -> pycolmap.Reconstruction:
+    binary = all((model / f"{f}.bin").is_file() for f in _MODEL_FILES)
+    text = all((model / f"{f}.txt").is_file() for f in _MODEL_FILES)
+    if not (binary or text):
+        ext = ".bin" if (model / "cameras.bin").is_file() else ".txt"
+        missing = [f + ext for f in _MODEL_FILES if not (model / f"{f}{ext}").is_file()]
+        raise InputError(model / missing[0], "COLMAP model file is missing",
+                         f"a model needs {', '.join(f + ext for f in _MODEL_FILES)}; re-export it")
+    (_check_binary if binary else _check_text)(model)
+    try:
+        return pycolmap.Reconstruction(str(model))
+    except Exception as e:  # pycolmap's messages do not name the file; attribute them as best we can
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        ext = ".bin" if binary else ".txt"
+        culprit = {"Camera": "cameras", "Rig": "images", "Image": "points3D"}.get(msg.split(" ")[0], None)
+        path = model / f"{culprit}{ext}" if culprit else model
+        raise InputError(path, f"COLMAP model cannot be read: {msg}",
+                         "the file is corrupt or the model files do not belong together; re-export it") from None
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _intrinsics(cam: pycolmap.Camera, model_file: Path) -> Intrinsics:
+    name = cam.model.name
+    p = [float(v) for v in cam.params]
+    w, h = int(cam.width), int(cam.height)
+    if name == "SIMPLE_PINHOLE":
+        return Intrinsics(w, h, p[0], p[0], p[1], p[2])
+    if name == "PINHOLE":
+        return Intrinsics(w, h, p[0], p[1], p[2], p[3])
+    if name == "SIMPLE_RADIAL":
+        return Intrinsics(w, h, p[0], p[0], p[1], p[2], (p[3], 0.0, 0.0, 0.0))
+    if name == "RADIAL":
+        return Intrinsics(w, h, p[0], p[0], p[1], p[2], (p[3], p[4], 0.0, 0.0))
+    if name == "OPENCV":
+        return Intrinsics(w, h, p[0], p[1], p[2], p[3], tuple(p[4:8]))
+    if name == "FULL_OPENCV":  # k1 k2 p1 p2 k3 k4 k5 k6: OpenCV's rational model, same order
+        return Intrinsics(w, h, p[0], p[1], p[2], p[3], tuple(p[4:12]))
+    raise _unsupported(model_file, name, f"camera {cam.camera_id}")
+
+
+def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
+    T = image.cam_from_world
+    T = T() if callable(T) else T  # a method in pycolmap >= 3.12, a property before
+    M = np.eye(4)
+    M[:3, :4] = np.asarray(T.matrix(), dtype=np.float64)
+    return M
+
+
+def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
+                load_images: bool = True, background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Scene:
+    """Load a COLMAP scene as undistorted pinhole cameras.
+
+    Args:
+        root: scene folder with ``sparse/0`` (or ``sparse``) holding a binary or text model and
+            ``images/``.
+        downscale: resize images by 1 / downscale (cv2.INTER_AREA) and scale the intrinsics.
+        test_every: image i (in name order) is a test view when i % test_every == 0; 0 = no test views.
+        load_images: decode the images (else only headers are read, to check sizes).
+        background: RGB in [0, 1] that RGBA images are composited on.
+
+    Returns:
+        Scene with ``points: [P, 3]`` and ``point_colors: [P, 3]`` in [0, 1] from points3D.
+
+    Raises:
+        InputError: naming the file, for any missing, truncated or inconsistent input.
+    """
+    root = Path(root)
+    downscale = check_downscale(downscale)
+    if not root.is_dir():
+        raise InputError(root, "scene folder does not exist", "check the path")
+    model = find_model_dir(root)
+    if model is None:
+        raise InputError(root, "no COLMAP model found (looked for sparse/0/cameras.bin and sparse/cameras.bin)",
+                         "run COLMAP/pycolmap SfM or pass a folder with sparse/0")
+    image_dir = root / "images"
+    if not image_dir.is_dir():
+        raise InputError(image_dir, "image folder does not exist", "put the images the model names in root/images")
+
+    rec = _read_reconstruction(model)
+    ext = ".bin" if (model / "cameras.bin").is_file() and (model / "images.bin").is_file() else ".txt"
+    cam_file, img_file, pts_file = (model / f"{f}{ext}" for f in _MODEL_FILES)
+
+    intrinsics = {cid: _intrinsics(cam, cam_file) for cid, cam in rec.cameras.items()}
+    images = sorted((im for im in rec.images.values() if getattr(im, "has_pose", True)), key=lambda im: im.name)
+    if not images:
+        raise InputError(img_file, "COLMAP model has no registered images", "re-run SfM")
+
+    # 1. every input checked before any decoding
+    entries = []
+    for im in images:
+        pose = _cam_from_world(im)
+        w2c = rigid_or_none(pose)
+        if w2c is None:
+            what = "a non-finite" if not np.all(np.isfinite(pose)) else "an invalid (non-rigid)"
+            raise InputError(img_file, f"image {im.name!r} has {what} pose",
+                             "re-run SfM or remove the image from the model")
+        path = image_dir / im.name
+        check_image_file(path, img_file.name)
+        intr = intrinsics[im.camera_id]
+        w, h = image_size(path)
+        if (w, h) != (intr.width, intr.height):
+            raise InputError(path, f"image is {w}x{h} but its camera {im.camera_id} in {cam_file.name} is "
+                             f"{intr.width}x{intr.height}",
+                             "use the images the model was made from (not a resized copy), or rescale the model")
+        entries.append((im.name, intr, w2c, path))
+
+    if rec.num_points3D():
+        pts = sorted(rec.points3D.items())
+        xyz = np.array([p.xyz for _, p in pts], dtype=np.float64)
+        rgb = np.array([p.color for _, p in pts], dtype=np.float64) / 255.0
+        if not np.all(np.isfinite(xyz)):
+            raise InputError(pts_file, f"{int((~np.isfinite(xyz).all(1)).sum())} points have non-finite positions",
+                             "re-run SfM or filter the point cloud")
+    else:
+        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3))
+
+    # 2. decode, undistort, downscale
+    und = Undistorter()
+    cams = []
+    for name, intr, w2c, path in entries:
+        img = None
+        if load_images:
+            img = read_image(path, background)
+            if img.shape[:2] != (intr.height, intr.width):  # header and pixels disagree
+                raise InputError(path, f"decoded image is {img.shape[1]}x{img.shape[0]}, expected "
+                                 f"{intr.width}x{intr.height}", "re-copy the image")
+        cams.append(make_camera(name, intr, w2c, und, downscale, img, path))
+
+    train, test = split_every(cams, test_every)
+    return Scene(root=root, train=train, test=test,
+                 points=torch.from_numpy(xyz.astype(np.float32)), point_colors=torch.from_numpy(rgb.astype(np.float32)),
+                 background=tuple(float(b) for b in background), source="colmap")

@@ -1,0 +1,195 @@
+"""instant-ngp / NeRF-synthetic scenes: ``transforms.json`` or ``transforms_{train,test}.json``.
+
+``transform_matrix`` is camera-to-world with OpenGL/Blender camera axes (x right, y up, z back);
+it becomes an OpenCV world-to-camera by flipping the camera's y and z axes and inverting.
+Intrinsics are global (``fl_x, fl_y, cx, cy, w, h`` or ``camera_angle_x`` [+ ``camera_angle_y``])
+and may be overridden per frame; ``k1, k2, p1, p2`` [+ ``k3``] distortion is undistorted away.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, image_size, make_camera,
+                      read_image, resolve_image, rigid_or_none, split_every)
+from .types import Camera, Scene
+
+#: OpenGL/Blender camera axes -> OpenCV camera axes (flip y and z)
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
+                   "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye")
+
+
+def find_transforms(root: Path) -> list[Path]:
+    """The transforms JSON files of a scene folder (empty if it has none)."""
+    if (root / "transforms_train.json").is_file():
+        out = [root / "transforms_train.json"]
+        if (root / "transforms_test.json").is_file():
+            out.append(root / "transforms_test.json")
+        return out
+    if (root / "transforms.json").is_file():
+        return [root / "transforms.json"]
+    return []
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(path, "is not a UTF-8 text file", "regenerate the transforms file") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})",
+                         "fix the syntax or regenerate the file") from None
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
+        raise InputError(path, "has no 'frames' list", "a transforms file needs {\"frames\": [...]} with "
+                         "file_path and transform_matrix per frame")
+    return data
+
+
+def _number(meta: dict, key: str, json_path: Path, frame: str) -> float | None:
+    if key not in meta or meta[key] is None:
+        return None
+    try:
+        v = float(meta[key])
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not math.isfinite(v):
+        raise InputError(json_path, f"frame {frame!r}: {key} = {meta[key]!r} is not a finite number",
+                         "fix the value in the file")
+    return v
+
+
+def _intrinsics(meta: dict, json_path: Path, frame: str, image_path: Path) -> Intrinsics:
+    """Intrinsics from merged (global + per-frame) keys; the image header gives a missing size
+    and must match a given one."""
+    num = {k: _number(meta, k, json_path, frame) for k in _INTRINSIC_KEYS if k != "is_fisheye"}
+    if meta.get("is_fisheye"):
+        raise InputError(json_path, "fisheye cameras (is_fisheye) are not supported",
+                         "undistort the images to a pinhole camera first")
+    w, h = image_size(image_path)
+    if num["w"] is not None and num["h"] is not None and (round(num["w"]), round(num["h"])) != (w, h):
+        raise InputError(image_path, f"image is {w}x{h} but {json_path.name} says "
+                         f"{round(num['w'])}x{round(num['h'])} (w, h) for frame {frame!r}",
+                         "use the images the transforms file was made for, or fix w and h")
+    fx, fy = num["fl_x"], num["fl_y"]
+    if fx is None and num["camera_angle_x"] is not None:
+        fx = 0.5 * w / math.tan(0.5 * num["camera_angle_x"])
+    if fy is None and num["camera_angle_y"] is not None and num["fl_x"] is None:
+        fy = 0.5 * h / math.tan(0.5 * num["camera_angle_y"])
+    if fx is None and fy is not None:
+        fx = fy
+    if fy is None:
+        fy = fx
+    if fx is None or fx <= 0 or fy <= 0:
+        raise InputError(json_path, f"frame {frame!r} has no usable focal length",
+                         "add fl_x (and fl_y) or camera_angle_x, globally or per frame")
+    cx = num["cx"] if num["cx"] is not None else w / 2.0
+    cy = num["cy"] if num["cy"] is not None else h / 2.0
+    k = [num[key] or 0.0 for key in ("k1", "k2", "p1", "p2", "k3")]
+    if num["k4"]:  # OpenCV's rational model (k1 k2 p1 p2 k3 k4 k5 k6)
+        k += [num["k4"], 0.0, 0.0]
+    dist = tuple(k) if any(k) else ()
+    return Intrinsics(w, h, fx, fy, cx, cy, dist)
+
+
+def _frames(json_path: Path, data: dict) -> list[tuple[str, Intrinsics, np.ndarray, Path]]:
+    """Check every frame of one file: image present and non-empty, pose finite, intrinsics complete."""
+    base = json_path.parent
+    glob = {k: data[k] for k in _INTRINSIC_KEYS if k in data}
+    out = []
+    for i, fr in enumerate(data["frames"]):
+        if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
+            raise InputError(json_path, f"frame {i} lacks file_path or transform_matrix", "fix the frame entry")
+        rel = str(fr["file_path"])
+        listed = base / rel
+        path = resolve_image(listed)
+        if path is None:
+            raise InputError(listed, f"image of frame {i} in {json_path.name} does not exist",
+                             f"add the image or remove the frame from {json_path.name}")
+        check_image_file(path, json_path.name)
+        try:
+            c2w = np.array(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            c2w = np.full((4, 4), np.nan)
+        if c2w.shape == (3, 4):
+            c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
+        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+            raise InputError(json_path, f"frame {rel!r}: transform_matrix is not a finite 4x4 matrix "
+                             "(NaN, inf or a wrong shape)", "fix or remove the frame")
+        c2w = rigid_or_none(c2w)
+        if c2w is None:
+            raise InputError(json_path, f"frame {rel!r}: transform_matrix is not a rigid transform "
+                             "(its rotation part is not orthonormal with det +1)", "fix or remove the frame")
+        w2c = np.linalg.inv(c2w @ GL_TO_CV)
+        intr = _intrinsics({**glob, **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}, json_path, rel, path)
+        name = path.relative_to(base).as_posix() if path.is_relative_to(base) else path.as_posix()
+        out.append((name, intr, w2c, path))
+    return out
+
+
+def load_transforms(root: str | Path, downscale: float = 1.0, test_every: int = 8,
+                    background: tuple[float, float, float] = (1.0, 1.0, 1.0), load_images: bool = True) -> Scene:
+    """Load an instant-ngp or NeRF-synthetic scene as undistorted pinhole cameras.
+
+    Args:
+        root: scene folder with ``transforms.json`` or ``transforms_train.json`` (+ ``transforms_test.json``),
+            or the path of one transforms JSON file.
+        downscale: resize images by 1 / downscale (cv2.INTER_AREA) and scale the intrinsics.
+        test_every: used when there is no ``transforms_test.json``: frame i (in file name order) is a
+            test view when i % test_every == 0; 0 = no test views.
+        background: RGB in [0, 1] that RGBA images are composited on (NeRF-synthetic: white).
+        load_images: decode the images (else only their headers are read, to check sizes).
+
+    Returns:
+        Scene without points (``points: [0, 3]``).
+
+    Raises:
+        InputError: naming the file, for invalid JSON, missing/empty/corrupt images, bad poses or
+            incomplete intrinsics.
+    """
+    root = Path(root)
+    downscale = check_downscale(downscale)
+    if root.is_file() and root.suffix == ".json":
+        files, root = [root], root.parent
+    elif root.is_dir():
+        files = find_transforms(root)
+        if not files:
+            raise InputError(root, "no transforms.json or transforms_train.json found",
+                             "pass a folder with an instant-ngp or NeRF-synthetic transforms file")
+    else:
+        raise InputError(root, "scene folder does not exist", "check the path")
+    background = tuple(float(b) for b in background)
+
+    # 1. every input checked before any decoding
+    per_file = [_frames(f, _read_json(f)) for f in files]
+    if len(per_file) == 2:  # the dataset's own train / test lists
+        train_f, test_f = per_file
+    else:
+        train_f, test_f = split_every(sorted(per_file[0], key=lambda e: e[0]), test_every)
+    if not train_f and not test_f:
+        raise InputError(files[0], "lists no frames", "add frames or pass another scene")
+
+    # 2. decode, undistort, downscale
+    und = Undistorter()
+
+    def cameras(entries) -> list[Camera]:
+        out = []
+        for name, intr, w2c, path in entries:
+            img = None
+            if load_images:
+                img = read_image(path, background)
+                if img.shape[:2] != (intr.height, intr.width):
+                    raise InputError(path, f"decoded image is {img.shape[1]}x{img.shape[0]}, expected "
+                                     f"{intr.width}x{intr.height}", "re-copy the image")
+            out.append(make_camera(name, intr, w2c, und, downscale, img, path))
+        return out
+
+    return Scene(root=root, train=cameras(train_f), test=cameras(test_f), background=background,
+                 source="transforms")
