@@ -8,13 +8,14 @@ from ..errors import InputError
 
 
 def initial_points(scene: Scene, init: str, budget: int, random_points: int = 100_000,
-                   seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                   seed: int = 0, random_extent: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
     """Points [P, 3] and colours [P, 3] to start from, never more than ``budget``.
 
     ``sfm``: the scene's SfM points (randomly subsampled to the budget: a model should not
-    start larger than it may grow). ``random``: uniform in a cube of half-width equal to the
-    scene extent around the mean camera look-at centre (3DGS-MCMC uses 3x the extent around
-    the origin; most of those points start outside every view).
+    start larger than it may grow). ``random``: uniform in a cube of half-width
+    ``random_extent`` x the scene extent around the point the cameras look at (3DGS-MCMC uses
+    3x the extent around the origin: most of those points start outside every view or right
+    in front of a camera, where they occlude it for thousands of iterations).
     """
     g = torch.Generator().manual_seed(seed)
     if init == "sfm":
@@ -29,7 +30,7 @@ def initial_points(scene: Scene, init: str, budget: int, random_points: int = 10
     if init == "random":
         n = min(budget, random_points)
         centre = _look_at_centre(scene)
-        pts = centre + (torch.rand(n, 3, generator=g) * 2 - 1) * scene.extent
+        pts = centre + (torch.rand(n, 3, generator=g) * 2 - 1) * scene.extent * random_extent
         cols = torch.rand(n, 3, generator=g)
         return pts, cols
     raise ValueError(f"unknown init {init!r}; use sfm or random")

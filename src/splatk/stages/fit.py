@@ -100,7 +100,10 @@ def prepare_run_dir(out: Path, overwrite: bool, resume: bool) -> None:
 def build_model(scene, cfg: FitConfig) -> SplatModel:
     pts, cols = initial_points(scene, cfg.train.init, cfg.train.budget, cfg.train.random_points,
                                cfg.train.seed)
-    return SplatModel.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color,
+    # Random points start 10x smaller than their neighbour spacing (3DGS-MCMC's init_scale 0.1):
+    # at full spacing they blanket every view and take thousands of iterations to clear.
+    scale_factor = cfg.train.init_scale if cfg.train.init_scale > 0 else (0.1 if cfg.train.init == "random" else 1.0)
+    return SplatModel.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color, scale_factor=scale_factor,
                                   kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
 
 

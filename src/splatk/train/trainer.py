@@ -36,6 +36,8 @@ class TrainConfig:
     budget: int = 100_000
     init: str = "sfm"
     random_points: int = 100_000
+    #: initial scale = init_scale x neighbour spacing (0: 0.1 for random init, 1 for SfM as DBS)
+    init_scale: float = 0.0
     seed: int = 0
     lambda_dssim: float = 0.2
     opacity_reg: float = 0.01
