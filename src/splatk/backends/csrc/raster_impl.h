@@ -807,7 +807,7 @@ void backward_tiles(const BwdArgs<S>& A) {
           const V al = vmin(amax, raw);
           m &= al >= amin;
           if (!any(m)) continue;
-          const V inv = V(S(1)) / (S(1) - al);
+          const V inv = recip(S(1) - al);
           const V Tc = select(m, T[row] * inv, T[row]);  // T_i = T_{i+1} / (1 - alpha_i)
           T[row] = Tc;
           V gdot = zero;
@@ -825,14 +825,14 @@ void backward_tiles(const BwdArgs<S>& A) {
           R1 = fmadd(vr2, V(dy), R1);
           R2 = fmadd(vr2, V(dy * dy), R2);
           if constexpr (VAR == vBeta) {
-            gp0 += vp * prof * bl;
+            gp0 = fmadd(vp * prof, bl, gp0);
           } else if constexpr (VAR == vStudent) {
             // d/dnu: profile * (-log1p(u) / 2 + (nu + 2) / (2 nu) * u / (1 + u))
             gp0 += vp * prof *
                    (S(-0.5) * bl + (S(0.5) * (pr.p0 + S(2)) / pr.p0) * su / (S(1) + su));
           } else if constexpr (VAR == vTable2) {
-            gp0 += vp * (S(1) - tlam);
-            gp1 += vp * tlam;
+            gp0 = fmadd(vp, S(1) - tlam, gp0);
+            gp1 = fmadd(vp, tlam, gp1);
           } else if constexpr (VAR == vTable16) {
             const V w0 = vp * (S(1) - tlam), w1 = vp * tlam;
             for (int j = 0; j + 1 < g.k; ++j) {
