@@ -1,0 +1,55 @@
+"""`splatk pretrain --target cosine --out weights.pt`: pretrain the learned kernel's networks."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from splatk.stages.pretrain import TARGETS, PretrainConfig, run_pretrain
+
+
+@click.command("pretrain")
+@click.option("--target", type=click.Choice(TARGETS), default="cosine", show_default=True,
+              help="Target profile d(r): cosine cos(pi/2 r^2), gaussian, polynomial (1-r^2)^2, linear 1-r.")
+@click.option("--out", "-o", type=click.Path(path_type=Path), required=True,
+              help="Weights file to write (a .json with the error is written beside it).")
+@click.option("--steps", type=int, default=PretrainConfig.steps, show_default=True,
+              help="Joint steps of Phi_proj and Phi_dec (after the decoder warm-up).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def command(target, out, steps, seed, overwrite, quiet):
+    """Fit the learned kernel's networks to a target profile (paper Sec. 4.5).
+
+    Use the result with `splatk fit --kernel learned --kernel-weights OUT`.
+    """
+    console = Console(stderr=True)
+    progress = None if quiet else Progress(
+        TextColumn("[bold]pretrain {task.fields[target]}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]:.4f}"), TimeElapsedColumn(), console=console,
+    )
+    task = {}
+
+    def on_step(step, total, loss):
+        if progress is None:
+            return
+        if "id" not in task:
+            task["id"] = progress.add_task("pretrain", total=total, target=target, loss=loss)
+        if step % 10 == 0 or step == total:
+            progress.update(task["id"], completed=step, loss=loss)
+
+    if progress is not None:
+        progress.start()
+    try:
+        path = run_pretrain(target, out, steps=steps, seed=seed, on_step=on_step, overwrite=overwrite)
+    finally:
+        if progress is not None:
+            progress.stop()
+    import json
+
+    err = json.loads(path.with_suffix(".json").read_text())["error"]
+    console.print(f"{target}: MAE {err['mae']:.4f}, max {err['max_abs']:.4f}, "
+                  f"|d(0) err| {err['mae_r0']:.4f}, |d(1) err| {err['mae_r1']:.4f}")
+    click.echo(f"wrote {path}")

@@ -1,0 +1,376 @@
+"""The learned, view-dependent splatting kernel (paper Sec. 4.1-4.3).
+
+Each primitive carries a 3D-kernel latent ``z3d`` [N, latent_dim] (zero at init, paper Sec. 4.5).
+For one view, the global projection MLP maps the latent and the primitive's camera-space
+attributes to a 2D-kernel latent (paper Eq. 5)::
+
+    z2d = Phi_proj(z3d, mu_cam, s, R_cam)          # 4 linear layers, 64 wide, leaky ReLU
+
+and the global decoder turns it into a radially symmetric profile of the squared normalised
+radius (paper Eq. 6)::
+
+    d = Phi_dec(r^2, z2d)                          # 3 linear layers, 4 wide, leaky ReLU, sigmoid
+
+The rasteriser never calls Phi_dec per pixel: :meth:`LearnedKernel.profile` samples it at
+``k`` radii ``r_i = i / (k - 1)`` (paper Eq. 7) for all visible primitives in one batched call,
+and the backends interpolate linearly in ``r`` (``Profile("table", d[M, k])``, paper Eq. 8).
+The support is the 1-sigma bounding ellipse (DBS convention), so ``r = 1`` is its edge.
+
+Input encoding of Phi_proj (the paper leaves it open). Scene units are arbitrary (COLMAP
+scenes span 1 to 1000 units), so raw ``mu_cam`` and ``s`` would put the network off the
+range it was pretrained on. We feed, per primitive (``rho = |mu_cam|``):
+
+* ``z``:  ``z3d`` as is                                    (latent_dim values)
+* ``mu``: ``mu_cam / rho`` (viewing direction, unit-free) and ``log(rho) / 2.5``   (4 values)
+* ``s``:  ``(log(s / rho) + 5) / 2.5``: the angular size of each axis, which is what the
+  projection sees and is invariant to the scene's unit; -1.7 to 1.1 for splats of 0.1 to
+  100 px at a 1000 px focal length                                                  (3 values)
+* ``R``:  ``R_cam`` flattened row-major                                             (9 values)
+
+Only ``log(rho)`` depends on the unit; pretraining samples it over [-3, 5] (0.05 to 150
+units) and the angular size over [e^-12, 1], and the target depends on neither, so the
+pretrained network (nearly) ignores them until scene training gives it a reason not to.
+Gradients flow through these inputs into the geometry (means, scales, quats) as well.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..backends import Profile
+from .base import Kernel, ViewContext, register_kernel
+
+#: the shipped pretrained networks (cosine target, default architecture), made by
+#: ``splatk pretrain --target cosine --out src/splatk/assets/learned_cosine.pt``
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "learned_cosine.pt"
+WEIGHTS_FORMAT = "splatk-learned-kernel"
+
+#: the four input groups of Phi_proj (paper Eq. 5, Tab. 3 ablation)
+PROJ_INPUTS = ("z", "mu", "s", "R")
+#: width of each input group after encoding (z: latent_dim)
+_ENC_WIDTH = {"mu": 4, "s": 3, "R": 9}
+LEAKY_SLOPE = 0.01
+#: encoding constants (see the module docstring)
+LOG_DIST_SCALE = 2.5
+LOG_ANGLE_SHIFT = 5.0
+LOG_ANGLE_SCALE = 2.5
+#: options that fix the networks' shapes; a weights file must match them
+ARCH_OPTIONS = ("latent_dim", "latent2d_dim", "proj_width", "dec_width", "proj_inputs")
+
+
+def parse_proj_inputs(spec) -> tuple[str, ...]:
+    """"z,mu,s,R" (any order, any subset; list or comma string) -> canonical ordered tuple."""
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    names = []
+    for item in items:
+        item = item.strip()
+        name = "R" if item in ("R", "r", "rot", "R_cam") else item
+        if name not in PROJ_INPUTS:
+            raise ValueError(f"unknown Phi_proj input {item!r}; choose a subset of z,mu,s,R")
+        names.append(name)
+    if not names:
+        raise ValueError("Phi_proj needs at least one input (a subset of z,mu,s,R)")
+    return tuple(n for n in PROJ_INPUTS if n in names)
+
+
+def _he_init(layer: nn.Linear) -> None:
+    """He et al. 2015 init for leaky-ReLU layers (paper Sec. 4.5); zero bias."""
+    nn.init.kaiming_normal_(layer.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+    nn.init.zeros_(layer.bias)
+
+
+def _mlp(sizes: list[int]) -> nn.Sequential:
+    """Linear layers with leaky ReLU after all but the last."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        lin = nn.Linear(a, b)
+        _he_init(lin)
+        layers.append(lin)
+        if i < len(sizes) - 2:
+            layers.append(nn.LeakyReLU(LEAKY_SLOPE))
+    return nn.Sequential(*layers)
+
+
+def phi_dec(w1, b1, w2, b2, w3, b3, z2d, r2, logits: bool = False) -> torch.Tensor:
+    """Phi_dec as a function of its weights (paper Eq. 6): see :meth:`LearnedKernel.decode`.
+
+    The first layer is linear in (r^2, z2d): its z2d part is computed once per primitive and
+    the r^2 part broadcast over the radii, so no [M, P, 1 + L] input is ever built.
+    """
+    h = F.linear(z2d, w1[:, 1:], b1)[..., None, :] + r2[..., None] * w1[:, 0]  # [M, P, W]
+    h = F.leaky_relu(h, LEAKY_SLOPE)
+    h = F.leaky_relu(F.linear(h, w2, b2), LEAKY_SLOPE)
+    out = F.linear(h, w3, b3)[..., 0]
+    return out if logits else torch.sigmoid(out)
+
+
+def canonical_views(n_views: int = 6) -> torch.Tensor:
+    """[V, 3, 3] world->camera rotations looking along +-x, +-y, +-z (first ``n_views``)."""
+    rots = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            f = torch.zeros(3)
+            f[axis] = sign
+            up = torch.zeros(3)
+            up[(axis + 1) % 3] = 1.0
+            r = torch.linalg.cross(f, up)
+            d = torch.linalg.cross(f, r)
+            rots.append(torch.stack([r, d, f]))
+    return torch.stack(rots[:n_views])
+
+
+@register_kernel
+class LearnedKernel(Kernel):
+    """Learned view-dependent kernel: per-primitive ``z3d`` plus global Phi_proj / Phi_dec.
+
+    Args:
+        k: profile samples per primitive and view (2, 4 or 8; paper Sec. 4.3, default 2).
+        latent_dim: size of ``z3d`` (paper: 5).
+        latent2d_dim: size of ``z2d`` (paper: 5).
+        proj_width: hidden width of Phi_proj (paper: 64).
+        dec_width: hidden width of Phi_dec (paper: 4).
+        proj_inputs: which inputs Phi_proj sees, a subset of "z,mu,s,R" (paper Tab. 3).
+        freeze_iters: the networks are frozen for this many iterations (paper: 2000).
+        net_lr, net_lr_final: the networks' LR decays exponentially between these after the
+            freeze (paper: 1.6e-4 -> 1.6e-6).
+        net_lr_mult: multiplies the network LR; None = 10 without pretrained weights (paper
+            Sec. 5.4, "no pre-train"), else 1.
+        z3d_lr: Adam LR of the per-primitive latents (the paper does not give one). 1e-4:
+            after pretraining a unit change of z3d moves the logits of d(0) + d(1) by 1-2.5,
+            so 1e-4 lets a latent travel a few units over a 30k-iteration fit. Measured on
+            `cup` (downscale 8, 1500 iterations, freeze 300, cpu backend), test / train PSNR:
+            z3d_lr 0: 28.41 / 29.69, 1e-4: 28.42 / 29.68, 3e-4: 28.29 / 29.14,
+            1e-3: 27.98 / 28.63, 3e-3: 27.24 / 28.05; larger rates cost PSNR on both splits.
+        weights: pretrained networks from `splatk pretrain`: "default" (the shipped cosine
+            file), a path, or "none" (He init, for the no-pretraining ablation).
+    """
+
+    name = "learned"
+    support_sigmas = 1.0
+
+    def __init__(
+        self,
+        k: int = 2,
+        latent_dim: int = 5,
+        latent2d_dim: int = 5,
+        proj_width: int = 64,
+        dec_width: int = 4,
+        proj_inputs="z,mu,s,R",
+        freeze_iters: int = 2000,
+        net_lr: float = 1.6e-4,
+        net_lr_final: float = 1.6e-6,
+        net_lr_mult: float | None = None,
+        z3d_lr: float = 1e-4,
+        weights: str | None = "default",
+    ):
+        super().__init__()
+        k = int(k)
+        if k < 2:
+            raise ValueError(f"learned kernel: k must be >= 2 (paper uses 2, 4, 8), got {k}")
+        self.k = k
+        self.latent_dim = int(latent_dim)
+        self.latent2d_dim = int(latent2d_dim)
+        self.proj_width = int(proj_width)
+        self.dec_width = int(dec_width)
+        self.inputs = parse_proj_inputs(proj_inputs)
+        self.freeze_iters = int(freeze_iters)
+        self.net_lr = float(net_lr)
+        self.net_lr_final = float(net_lr_final)
+        self.z3d_lr = float(z3d_lr)
+        w = "none" if weights is None else str(weights)
+        self.weights = w
+        pretrained = w.lower() != "none"
+        self.net_lr_mult = float(net_lr_mult) if net_lr_mult is not None else (1.0 if pretrained else 10.0)
+
+        in_dim = sum(self.latent_dim if n == "z" else _ENC_WIDTH[n] for n in self.inputs)
+        w64 = self.proj_width
+        self.proj = _mlp([in_dim, w64, w64, w64, self.latent2d_dim])  # Phi_proj, paper Eq. 5
+        self.dec = _mlp([1 + self.latent2d_dim, self.dec_width, self.dec_width, 1])  # Phi_dec, Eq. 6
+        radii = torch.linspace(0.0, 1.0, k)
+        self.register_buffer("radii2", radii * radii, persistent=False)  # r_i^2, paper Eq. 7
+
+        # A missing weights file is reported at first use, not here: load_model() rebuilds the
+        # kernel from its options and then loads the saved networks over it, which must work
+        # even where the original weights file no longer exists.
+        self._missing_weights: Path | None = None
+        self.register_load_state_dict_post_hook(self._loaded_state)
+        if pretrained:
+            path = DEFAULT_WEIGHTS if w == "default" else Path(w).expanduser()
+            if path.is_file():
+                self.load_pretrained(path)
+            else:
+                self._missing_weights = path
+
+    # ---- options and weights -----------------------------------------------------------
+    @property
+    def options(self) -> dict:
+        """Every constructor option, resolved (JSON/YAML serialisable)."""
+        return {
+            "k": self.k,
+            "latent_dim": self.latent_dim,
+            "latent2d_dim": self.latent2d_dim,
+            "proj_width": self.proj_width,
+            "dec_width": self.dec_width,
+            "proj_inputs": ",".join(self.inputs),
+            "freeze_iters": self.freeze_iters,
+            "net_lr": self.net_lr,
+            "net_lr_final": self.net_lr_final,
+            "net_lr_mult": self.net_lr_mult,
+            "z3d_lr": self.z3d_lr,
+            "weights": self.weights,
+        }
+
+    def arch_options(self) -> dict:
+        return {name: self.options[name] for name in ARCH_OPTIONS}
+
+    @staticmethod
+    def _loaded_state(module, incompatible) -> None:
+        module._missing_weights = None
+
+    def load_pretrained(self, path: str | Path) -> dict:
+        """Load networks written by :func:`splatk.stages.pretrain.run_pretrain`; returns the
+        file's metadata (target, error)."""
+        from ..errors import InputError
+
+        path = Path(path)
+        try:
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:
+            raise InputError(path, f"cannot read learned-kernel weights ({type(e).__name__})",
+                             "re-run `splatk pretrain`") from e
+        if not isinstance(obj, dict) or obj.get("format") != WEIGHTS_FORMAT:
+            raise InputError(path, "not a learned-kernel weights file", "make one with `splatk pretrain`")
+        theirs = {n: obj["options"].get(n) for n in ARCH_OPTIONS}
+        theirs["proj_inputs"] = ",".join(parse_proj_inputs(theirs["proj_inputs"]))
+        ours = self.arch_options()
+        if theirs != ours:
+            diff = ", ".join(f"{n}: file {theirs[n]} vs kernel {ours[n]}" for n in ARCH_OPTIONS
+                             if theirs[n] != ours[n])
+            raise InputError(path, f"weights are for another network shape ({diff})",
+                             "pretrain with the same kernel options (`splatk pretrain`) or pass "
+                             "weights: none")
+        self.load_state_dict(obj["state_dict"])
+        return {k: v for k, v in obj.items() if k != "state_dict"}
+
+    def _check_weights(self) -> None:
+        if self._missing_weights is not None:
+            from ..errors import InputError
+
+            raise InputError(self._missing_weights, "learned-kernel weights file not found",
+                             "make it with `splatk pretrain`, pass another --kernel-weights, "
+                             "or weights: none for random init")
+
+    # ---- per-primitive parameters and schedules ---------------------------------------
+    def init_primitive_params(self, n, device):
+        if "z" not in self.inputs:
+            return {}
+        return {"z3d": torch.zeros(n, self.latent_dim, device=device)}  # paper Sec. 4.5
+
+    def learning_rates(self):
+        return {"z3d": self.z3d_lr} if "z" in self.inputs else {}
+
+    def network_learning_rate(self, it: int, progress: float) -> float:
+        """0 for the first ``freeze_iters`` iterations (paper Sec. 4.5, stage one), then an
+        exponential decay net_lr -> net_lr_final over the remaining progress."""
+        if it <= self.freeze_iters or self.net_lr <= 0:
+            return 0.0
+        # progress at the end of the freeze, from the ratio progress / iteration (exact when
+        # progress counts iterations; a good estimate under a time budget)
+        p0 = progress * self.freeze_iters / max(it, 1)
+        q = 1.0 if p0 >= 1.0 else min(1.0, max(0.0, (progress - p0) / (1.0 - p0)))
+        lo = max(self.net_lr_final, 1e-30)
+        lr = math.exp((1.0 - q) * math.log(self.net_lr) + q * math.log(lo))
+        return lr * self.net_lr_mult
+
+    # ---- the networks -----------------------------------------------------------------
+    def encode(self, z3d: torch.Tensor | None, view: ViewContext) -> torch.Tensor:
+        """Phi_proj's input [M, D] (see the module docstring), built with one cat."""
+        mu = view.means_cam
+        parts = []
+        if "z" in self.inputs:
+            parts.append(z3d)
+        if "mu" in self.inputs or "s" in self.inputs:
+            rho = torch.linalg.vector_norm(mu, dim=1, keepdim=True).clamp_min(1e-12)
+            log_rho = torch.log(rho)
+        if "mu" in self.inputs:
+            parts += [mu / rho, log_rho * (1.0 / LOG_DIST_SCALE)]
+        if "s" in self.inputs:
+            parts.append((torch.log(view.scales) - log_rho + LOG_ANGLE_SHIFT) * (1.0 / LOG_ANGLE_SCALE))
+        if "R" in self.inputs:
+            parts.append(view.rotmats_cam.reshape(-1, 9))
+        return torch.cat(parts, 1) if len(parts) > 1 else parts[0]
+
+    def project(self, z3d: torch.Tensor | None, view: ViewContext) -> torch.Tensor:
+        """z2d = Phi_proj(z3d, mu_cam, s, R_cam) (paper Eq. 5): [M, latent2d_dim]."""
+        return self.proj(self.encode(z3d, view))
+
+    def decode(self, z2d: torch.Tensor, r2: torch.Tensor, logits: bool = False) -> torch.Tensor:
+        """d = Phi_dec(r^2, z2d) (paper Eq. 6) at many radii per primitive.
+
+        Args:
+            z2d: [M, latent2d_dim].
+            r2: [P] radii^2 shared by all primitives, or [M, P] per primitive.
+            logits: return the pre-sigmoid values instead (pretraining's loss uses them).
+
+        Returns:
+            [M, P] profile values in (0, 1) (or their logits).
+        """
+        first, _, mid, _, last = self.dec
+        return phi_dec(first.weight, first.bias, mid.weight, mid.bias, last.weight, last.bias,
+                       z2d, r2, logits)
+
+    def profile(self, prims, view: ViewContext) -> Profile:
+        """Samples d_i = Phi_dec(r_i^2, z2d) at r_i = i / (k - 1) (paper Eq. 7): table [M, k]."""
+        self._check_weights()
+        z2d = self.project(prims.get("z3d"), view)
+        return Profile("table", self.decode(z2d, self.radii2))
+
+    # ---- export to plain Gaussians ----------------------------------------------------
+    @torch.no_grad()
+    def gaussian_scale_factor(self, prims, n_views: int = 6, depth_over_scale: float = 100.0,
+                              chunk: int = 65536) -> torch.Tensor:
+        """Per-primitive f such that a Gaussian of scale ``f * s`` has the second moment of the
+        view-averaged kernel (for 3DGS viewers, which cannot show view dependence).
+
+        Approximation: the view-dependent kernel is averaged over ``n_views`` canonical views
+        (the camera looks along +-x, +-y, +-z of the world at the primitive, centred on the
+        optical axis at a depth of ``depth_over_scale`` times its largest scale, i.e. a splat
+        of a few pixels' radius). Its k-sample table is interpolated as the rasteriser does
+        and, for the radially symmetric profile d(r) (r in units of the 1-sigma support), the
+        matching Gaussian exp(-r^2 / (2 f^2)) has per-axis variance
+        ``f^2 = int d r^3 dr / (2 int d r dr)``. The centre value d(0) is not carried over:
+        viewers multiply the Gaussian by the stored opacity.
+        """
+        from ..functional.projection import quats_to_rotmats
+
+        self._check_weights()
+        n = prims["means"].shape[0]
+        views = canonical_views(n_views).to(prims["means"].device)
+        grid = torch.linspace(0.0, 1.0, 257, device=views.device)
+        out = torch.empty(n, device=views.device)
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            scales = torch.exp(prims["log_scales"][a:b])
+            R = quats_to_rotmats(prims["quats"][a:b])
+            depth = depth_over_scale * scales.amax(1)
+            mu = torch.zeros(b - a, 3, device=views.device)
+            mu[:, 2] = depth
+            z3d = prims["z3d"][a:b] if "z3d" in prims else None
+            tables = 0.0
+            for V in views:
+                view = ViewContext(mu, scales, V[None] @ R)
+                tables = tables + self.decode(self.project(z3d, view), self.radii2)
+            tables = tables / len(views)  # [m, k]
+            # the rendered profile: linear interpolation of the table in r
+            t = grid * (self.k - 1)
+            idx = t.floor().long().clamp(0, self.k - 2)
+            lam = t - idx
+            d = (1 - lam) * tables[:, idx] + lam * tables[:, idx + 1]  # [m, G]
+            num = torch.trapezoid(d * grid**3, grid, dim=1)
+            den = torch.trapezoid(d * grid, grid, dim=1).clamp_min(1e-12)
+            out[a:b] = torch.sqrt((num / (2 * den)).clamp_min(1e-8))
+        return out
