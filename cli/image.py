@@ -1,0 +1,78 @@
+"""`splatk image PHOTO --kernel learned --budget-bytes N --out DIR`: fit one photo with 2D splats."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                           TimeRemainingColumn)
+
+from splatk.models.image2d import KERNELS
+from splatk.stages.image_fit import ImageFitConfig, run_image_fit
+
+_D = ImageFitConfig()
+
+
+@click.command("image")
+@click.argument("photo", type=click.Path(path_type=Path))
+@click.option("--kernel", type=click.Choice(KERNELS), default=_D.kernel, show_default=True,
+              help="2D kernel: gaussian (GaussianImage), gabor (Gabor splatting), learned (planar decoder).")
+@click.option("--budget-bytes", type=int, default=_D.budget_bytes, show_default=True,
+              help="Bytes for all per-primitive parameters at float32; sets the number of primitives.")
+@click.option("--out", "-o", type=click.Path(path_type=Path), required=True,
+              help="Folder for render.png, primitives.png, kernels.png and metrics.json.")
+@click.option("--iters", type=int, default=_D.iters, show_default=True, help="Optimisation steps.")
+@click.option("--seed", type=int, default=_D.seed, show_default=True, help="Random seed of the init.")
+@click.option("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice).")
+@click.option("--downscale", type=int, default=_D.downscale, show_default=True,
+              help="Box-downscale the photo by this integer factor first.")
+@click.option("--grid", type=int, default=_D.grid, show_default=True,
+              help="Learned kernel: decoder table nodes per axis (bilinear lookup).")
+@click.option("--exact", is_flag=True, help="Learned kernel: run the decoder per pixel (slow reference).")
+@click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing result in --out.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, exact, no_lpips,
+            overwrite, quiet):
+    """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
+
+    The image is the plain sum of the splats (GaussianImage style); see
+    `splatk.models.image2d` for the kernels and the byte accounting.
+    """
+    import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+    cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
+                         downscale=downscale, grid=grid, exact=exact, lpips=not no_lpips)
+    console = Console(stderr=True)
+    progress = None if quiet else Progress(
+        TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]:.5f}"), TextColumn("PSNR {task.fields[psnr]:5.2f}"),
+        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console,
+    )
+    task = {}
+
+    def on_step(step, total, loss, psnr):
+        if progress is None:
+            return
+        if "id" not in task:
+            task["id"] = progress.add_task("image", total=total, loss=loss, psnr=psnr)
+        if step % 5 == 0 or step == total:
+            progress.update(task["id"], completed=step, loss=loss, psnr=psnr)
+
+    if progress is not None:
+        progress.start()
+    try:
+        path = run_image_fit(photo, out, cfg, overwrite=overwrite, on_step=on_step)
+    finally:
+        if progress is not None:
+            progress.stop()
+    m = json.loads(path.read_text())
+    lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
+    console.print(f"{kernel}: {m['num_primitives']} primitives, {m['bytes']} bytes"
+                  + (f" (+{m['network_bytes']} shared network bytes)" if m["network_bytes"] else "")
+                  + f", PSNR {m['psnr']:.2f}, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['seconds']:.1f} s")
+    click.echo(f"wrote {path}")

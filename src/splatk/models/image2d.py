@@ -1,0 +1,237 @@
+"""2D splats that represent one image: Gaussian, Gabor and learned planar kernels.
+
+All three share the geometry of GaussianImage (Zhang et al. 2024; peers.md Sec. 7.1): a mean
+``xy`` (``tanh`` of a raw value, so [-1, 1] maps to the image), a lower-triangular Cholesky
+factor ``L = [[l11, 0], [l21, l22]]`` of the covariance in pixels (``Sigma = L L^T``) and an
+RGB colour. The image is the plain sum (no alpha compositing)::
+
+    I(x) = sum_i c_i k_i(u_i(x), v_i(x))          (GaussianImage "rasterize_gaussians_sum")
+
+where ``(u, v) = L^-1 (x - mu) / 3`` are the splat's local coordinates: the 3-sigma ellipse is
+the unit disk, which is also each kernel's support (3 sigma, as GaussianImage).
+
+Kernels k(u, v) (``E(u, v) = exp(-4.5 (u^2 + v^2))`` is the Gaussian envelope):
+
+* ``gaussian``: ``E``.                                                 8 floats / primitive
+* ``gabor``:    ``E * prod_{d in u, v} sum_k a_{k,d} cos(pi f_{k,d} d)``, K = 2 waves per axis
+  with learned amplitudes and frequencies (Gabor splatting, peers.md Sec. 7.3, which picks
+  frequencies from a bank; here they are continuous parameters).     8 + 8 = 16 floats
+* ``learned``:  ``E * Phi_dec_planar(u, v, z)`` with a per-primitive latent ``z`` (10 values)
+  and one global decoder (paper Eq. 9; 3 linear layers, 8 wide, leaky ReLU). For an image there
+  is no camera, so Phi_proj is the identity (``z_after = z``).            8 + 10 = 18 floats
+
+Learned-kernel choices (the paper leaves them open for images):
+
+* Signed output, no sigmoid: the image is a sum, not a composite, so a kernel may have negative
+  lobes (as Gabor's do) and the sigmoid's [0, 1] range would forbid them.
+* The network output multiplies the Gaussian envelope instead of standing alone: a free MLP is
+  not zero at the edge of the support, which shows as a seam at every splat's bbox; ``E``
+  makes the support as soft as the baseline's. The last layer starts at weight 0, bias 1, so
+  at init the kernel *is* the Gaussian (what pretraining on Gaussian surfels aims at; paper
+  Sec. 4.5) and the latents steer it away from there.
+* Table mode (default): the decoder is sampled per primitive on a ``G x G`` grid of nodes over
+  (u, v) in [-1, 1]^2 and pixels interpolate bilinearly (the 2D analogue of paper Eq. 8), so
+  per-pixel cost is one Gaussian plus four gathers. ``exact`` mode calls the decoder per pixel
+  (the reference the table is tested against).
+
+Rendering is tiled pure torch: every (splat, pixel) pair inside the splat's 3-sigma bbox is
+listed (integers, no grad), the kernel is evaluated on the pairs and ``index_add`` sums the
+colours; splats are processed in chunks so the number of pairs in flight stays bounded.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+KERNELS = ("gaussian", "gabor", "learned")
+#: support in sigmas (GaussianImage uses 3)
+SUPPORT_SIGMAS = 3.0
+LEAKY_SLOPE = 0.01
+LATENT_DIM = 10
+DEC_WIDTH = 8
+GABOR_WAVES = 2
+#: largest bbox half-size in pixels (bounds the pairs of a huge splat; its tail is cut there)
+MAX_RADIUS = 64
+#: (splat, pixel) pairs evaluated at once
+CHUNK_PAIRS = 2_000_000
+
+
+def floats_per_primitive(kernel: str) -> int:
+    """Every per-primitive float: xy 2 + Cholesky 3 + colour 3 + the kernel's own."""
+    extra = {"gaussian": 0, "gabor": 4 * GABOR_WAVES, "learned": LATENT_DIM}
+    if kernel not in extra:
+        raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
+    return 8 + extra[kernel]
+
+
+def decoder_floats() -> int:
+    """Floats of the shared Phi_dec_planar (amortised over all primitives, stated apart)."""
+    i, w = 2 + LATENT_DIM, DEC_WIDTH
+    return (i * w + w) + (w * w + w) + (w + 1)
+
+
+def num_primitives(kernel: str, budget_bytes: int) -> int:
+    """Primitives that fit in ``budget_bytes`` at float32 (network bytes not included)."""
+    return int(budget_bytes) // (4 * floats_per_primitive(kernel))
+
+
+class PlanarDecoder(nn.Module):
+    """Phi_dec_planar(u, v, z) (paper Eq. 9): [2 + L] -> 8 -> 8 -> 1, leaky ReLU, signed output."""
+
+    def __init__(self, latent_dim: int = LATENT_DIM, width: int = DEC_WIDTH):
+        super().__init__()
+        self.l1 = nn.Linear(2 + latent_dim, width)
+        self.l2 = nn.Linear(width, width)
+        self.l3 = nn.Linear(width, 1)
+        for lin in (self.l1, self.l2):
+            nn.init.kaiming_normal_(lin.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+            nn.init.zeros_(lin.bias)
+        nn.init.zeros_(self.l3.weight)  # starts as the constant 1: the kernel is the Gaussian
+        nn.init.ones_(self.l3.bias)
+
+    def forward(self, uv: Tensor, z: Tensor) -> Tensor:
+        """uv: [..., 2], z: [..., L] (broadcast) -> [...]. The z part of layer 1 is computed once."""
+        h = F.linear(z, self.l1.weight[:, 2:], self.l1.bias) + F.linear(uv, self.l1.weight[:, :2])
+        h = F.leaky_relu(h, LEAKY_SLOPE)
+        h = F.leaky_relu(self.l2(h), LEAKY_SLOPE)
+        return self.l3(h)[..., 0]
+
+
+def bilinear(table: Tensor, idx: Tensor, uv: Tensor) -> Tensor:
+    """Sample per-primitive tables at (u, v).
+
+    Args:
+        table: [N, G, G] values at nodes ``linspace(-1, 1, G)``, indexed [v, u].
+        idx: [P] primitive of each sample.
+        uv: [P, 2] in [-1, 1] (clamped).
+    Returns:
+        [P] bilinearly interpolated values (exact at the nodes).
+    """
+    g = table.shape[-1]
+    t = ((uv.clamp(-1.0, 1.0) + 1.0) * 0.5 * (g - 1))
+    i0 = t.detach().floor().clamp(0, g - 2)
+    f = t - i0
+    i0 = i0.long()
+    flat = table.reshape(-1)
+    base = idx * (g * g) + i0[:, 1] * g + i0[:, 0]
+    fu, fv = f[:, 0], f[:, 1]
+    t00, t01 = flat[base], flat[base + 1]
+    t10, t11 = flat[base + g], flat[base + g + 1]
+    return (t00 * (1 - fu) + t01 * fu) * (1 - fv) + (t10 * (1 - fu) + t11 * fu) * fv
+
+
+class Splats2D(nn.Module):
+    """N 2D splats of one kernel kind fitted to an H x W image.
+
+    Args:
+        kernel: gaussian | gabor | learned.
+        n: number of primitives.
+        height, width: image size in pixels.
+        grid: table nodes per axis of the learned kernel (4 to 8 are sensible).
+        exact: learned kernel only: evaluate Phi_dec_planar per pixel instead of the table.
+        generator: for the random init (means uniform, colours uniform in [0, 0.1]).
+    """
+
+    def __init__(self, kernel: str, n: int, height: int, width: int, grid: int = 8,
+                 exact: bool = False, generator: torch.Generator | None = None):
+        super().__init__()
+        if kernel not in KERNELS:
+            raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
+        if n < 1:
+            raise ValueError(f"need at least one primitive, got {n}")
+        self.kernel, self.n, self.height, self.width = kernel, int(n), int(height), int(width)
+        self.grid, self.exact = int(grid), bool(exact)
+        gen = generator
+        self.xy_raw = nn.Parameter(torch.atanh(torch.rand(n, 2, generator=gen) * 1.96 - 0.98))
+        # initial sigma: splats tile the image about twice over
+        s0 = 0.5 * math.sqrt(height * width / n)
+        self.chol = nn.Parameter(torch.tensor([s0, 0.0, s0]).repeat(n, 1))  # l11, l21, l22 (px)
+        self.colors = nn.Parameter(torch.rand(n, 3, generator=gen) * 0.1)
+        if kernel == "gabor":
+            amps = torch.zeros(n, 2, GABOR_WAVES)
+            amps[..., 0] = 1.0  # first wave at frequency 0: starts as a Gaussian
+            self.gabor_amps = nn.Parameter(amps)
+            freqs = torch.zeros(n, 2, GABOR_WAVES)
+            freqs[..., 1:] = 0.5 + 2.0 * torch.rand(n, 2, GABOR_WAVES - 1, generator=gen)
+            self.gabor_freqs = nn.Parameter(freqs)
+        if kernel == "learned":
+            self.latents = nn.Parameter(0.1 * torch.randn(n, LATENT_DIM, generator=gen))
+            self.decoder = PlanarDecoder()
+
+    # ---- geometry -------------------------------------------------------------------------
+    def means_px(self) -> Tensor:
+        """[N, 2] means in pixels (x, y), pixel centres at integer + 0.5."""
+        t = (torch.tanh(self.xy_raw) + 1.0) * 0.5
+        return t * torch.tensor([self.width, self.height], dtype=t.dtype)
+
+    def chol_factors(self) -> tuple[Tensor, Tensor, Tensor]:
+        """l11, l21, l22 with the diagonal kept >= 0.3 px (no degenerate splats)."""
+        c = self.chol
+        return c[:, 0].abs() + 0.3, c[:, 1], c[:, 2].abs() + 0.3
+
+    def kernel_table(self) -> Tensor:
+        """[N, G, G] Phi_dec_planar at the grid nodes (learned kernel)."""
+        g = torch.linspace(-1.0, 1.0, self.grid)
+        vv, uu = torch.meshgrid(g, g, indexing="ij")
+        uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)  # [1, G*G, 2]
+        out = self.decoder(uv, self.latents[:, None, :])  # [N, G*G]
+        return out.reshape(self.n, self.grid, self.grid)
+
+    def kernel_values(self, uv: Tensor, idx: Tensor, table: Tensor | None = None) -> Tensor:
+        """k(u, v) for samples ``uv`` [P, 2] of primitives ``idx`` [P] -> [P] (0 outside the disk)."""
+        r2 = (uv * uv).sum(-1)
+        env = torch.exp(-0.5 * SUPPORT_SIGMAS**2 * r2) * (r2 <= 1.0)
+        if self.kernel == "gaussian":
+            return env
+        if self.kernel == "gabor":
+            a, f = self.gabor_amps[idx], self.gabor_freqs[idx]  # [P, 2, K]
+            waves = (a * torch.cos(math.pi * f * uv[:, :, None])).sum(-1)  # [P, 2]
+            return env * waves[:, 0] * waves[:, 1]
+        if self.exact or table is None:
+            return env * self.decoder(uv, self.latents[idx])
+        return env * bilinear(table, idx, uv)
+
+    # ---- rendering ------------------------------------------------------------------------
+    @torch.no_grad()
+    def _pairs(self, means: Tensor, l11: Tensor, l21: Tensor, l22: Tensor):
+        """(splat index, pixel x, pixel y) for every pixel centre in each splat's 3-sigma bbox."""
+        rx = (SUPPORT_SIGMAS * l11).ceil().clamp(max=MAX_RADIUS).long()
+        ry = (SUPPORT_SIGMAS * torch.sqrt(l21 * l21 + l22 * l22)).ceil().clamp(max=MAX_RADIUS).long()
+        cx = means[:, 0].floor().long()
+        cy = means[:, 1].floor().long()
+        wx, wy = 2 * rx + 1, 2 * ry + 1
+        counts = wx * wy
+        idx = torch.repeat_interleave(torch.arange(self.n), counts)
+        starts = torch.cumsum(counts, 0) - counts
+        k = torch.arange(int(counts.sum())) - starts[idx]
+        px = cx[idx] + k % wx[idx] - rx[idx]
+        py = cy[idx] + k // wx[idx] - ry[idx]
+        keep = (px >= 0) & (px < self.width) & (py >= 0) & (py < self.height)
+        return idx[keep], px[keep], py[keep]
+
+    def render(self) -> Tensor:
+        """[H, W, 3] image (unclamped sum of the splats)."""
+        means = self.means_px()
+        l11, l21, l22 = self.chol_factors()
+        table = self.kernel_table() if self.kernel == "learned" and not self.exact else None
+        idx, px, py = self._pairs(means.detach(), l11.detach(), l21.detach(), l22.detach())
+        out = torch.zeros(self.height * self.width, 3, dtype=means.dtype)
+        for s in range(0, idx.numel(), CHUNK_PAIRS):
+            i, x, y = idx[s:s + CHUNK_PAIRS], px[s:s + CHUNK_PAIRS], py[s:s + CHUNK_PAIRS]
+            dx = x.to(means.dtype) + 0.5 - means[i, 0]
+            dy = y.to(means.dtype) + 0.5 - means[i, 1]
+            u = dx / l11[i]
+            v = (dy - l21[i] * u) / l22[i]  # L^-1 (x - mu), forward substitution
+            uv = torch.stack([u, v], -1) / SUPPORT_SIGMAS
+            w = self.kernel_values(uv, i, table)
+            out = out.index_add(0, y * self.width + x, w[:, None] * self.colors[i])
+        return out.reshape(self.height, self.width, 3)
+
+    def describe_bytes(self) -> dict:
+        """Honest storage at float32: per-primitive bytes and (learned) the shared decoder."""
+        per = 4 * floats_per_primitive(self.kernel)
+        return {"bytes": per * self.n, "bytes_per_primitive": per,
+                "network_bytes": 4 * decoder_floats() if self.kernel == "learned" else 0}

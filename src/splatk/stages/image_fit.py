@@ -1,0 +1,219 @@
+"""`splatk image`: fit one photo with 2D splats at a byte budget (paper Sec. 5, image representation).
+
+The number of primitives is ``budget_bytes // (4 * floats per primitive)`` (see
+:func:`splatk.models.image2d.floats_per_primitive`); the learned kernel's shared decoder
+(185 floats, 740 bytes) is reported apart as ``network_bytes``. Training follows GaussianImage
+(peers.md Sec. 7.1): random init, L2 loss on the unclamped sum, Adam; with a few hundred to a
+few thousand CPU iterations instead of 50k, the learning rates are larger than its 1e-3 and
+decay 10x over the run (cosine).
+
+Writes into OUT: ``render.png`` (the reconstruction), ``primitives.png`` (each splat's
+1-sigma ellipse outlined in its colour), ``kernels.png`` (the kernel of the 16 largest splats
+over (u, v) in [-1, 1]^2, red positive / blue negative), ``metrics.json``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..metrics import compute_metrics, lpips_available
+from ..models.image2d import KERNELS, Splats2D, decoder_floats, num_primitives
+
+
+@dataclass
+class ImageFitConfig:
+    """Settings of `splatk image`."""
+
+    #: 2D kernel: gaussian | gabor | learned
+    kernel: str = "learned"
+    #: bytes for all per-primitive parameters (float32)
+    budget_bytes: int = 65536
+    #: optimisation steps
+    iters: int = 2000
+    #: random seed of the init
+    seed: int = 0
+    #: downscale the photo by this integer factor first (box filter)
+    downscale: int = 1
+    #: learned kernel: table nodes per axis (bilinear lookup at render time)
+    grid: int = 8
+    #: learned kernel: evaluate the decoder per pixel instead of the table (slow reference)
+    exact: bool = False
+    #: Adam learning rate of the means (tanh space: 1e-2 is about W/200 px per step)
+    lr_xy: float = 5e-3
+    #: Adam learning rate of the Cholesky factors, relative to the initial sigma
+    lr_chol: float = 2e-2
+    #: Adam learning rate of the colours
+    lr_color: float = 1e-2
+    #: Adam learning rate of the kernel parameters (Gabor waves, learned latents)
+    lr_kernel: float = 1e-2
+    #: Adam learning rate of the learned kernel's decoder
+    lr_net: float = 2e-3
+    #: compute LPIPS (alex) when its weights are available
+    lpips: bool = True
+
+
+def load_photo(path: Path, downscale: int = 1) -> torch.Tensor:
+    """[H, W, 3] float in [0, 1]; box-downscaled by an integer factor."""
+    from PIL import Image
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "photo not found", "pass an existing PNG/JPEG file")
+    try:
+        img = Image.open(path).convert("RGB")
+    except Exception as e:  # PIL raises several types for unreadable files
+        raise InputError(path, f"cannot read image ({e})", "pass a PNG or JPEG photo") from e
+    t = torch.from_numpy(np.asarray(img, dtype=np.float32) / 255.0)
+    if downscale > 1:
+        h, w = t.shape[0] // downscale * downscale, t.shape[1] // downscale * downscale
+        t = t[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale, 3).mean((1, 3))
+    return t.contiguous()
+
+
+def save_png(img: torch.Tensor, path: Path) -> None:
+    from PIL import Image
+
+    arr = (img.detach().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+    Image.fromarray(arr).save(path)
+
+
+def _optimizer(model: Splats2D, cfg: ImageFitConfig, s0: float) -> torch.optim.Optimizer:
+    groups = [
+        {"params": [model.xy_raw], "lr": cfg.lr_xy},
+        {"params": [model.chol], "lr": cfg.lr_chol * s0},
+        {"params": [model.colors], "lr": cfg.lr_color},
+    ]
+    if model.kernel == "gabor":
+        groups.append({"params": [model.gabor_amps, model.gabor_freqs], "lr": cfg.lr_kernel})
+    if model.kernel == "learned":
+        groups.append({"params": [model.latents], "lr": cfg.lr_kernel})
+        groups.append({"params": list(model.decoder.parameters()), "lr": cfg.lr_net})
+    for g in groups:
+        g["base_lr"] = g["lr"]
+    return torch.optim.Adam(groups)
+
+
+def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
+              on_step: Callable[[int, int, float, float], None] | None = None) -> tuple[Splats2D, dict]:
+    """Fit splats to ``target`` [H, W, 3]; returns the model and a summary (psnr, seconds...)."""
+    if cfg.kernel not in KERNELS:
+        raise InputError(None, f"unknown kernel {cfg.kernel!r}", f"choose from {', '.join(KERNELS)}")
+    n = num_primitives(cfg.kernel, cfg.budget_bytes)
+    if n < 1:
+        raise InputError(None, f"budget of {cfg.budget_bytes} bytes holds no {cfg.kernel} primitive",
+                         "raise --budget-bytes")
+    if cfg.iters < 0:
+        raise InputError(None, f"iters must be >= 0, got {cfg.iters}")
+    h, w = target.shape[:2]
+    gen = torch.Generator().manual_seed(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    model = Splats2D(cfg.kernel, n, h, w, grid=cfg.grid, exact=cfg.exact, generator=gen)
+    s0 = float(model.chol[0, 0].detach())
+    opt = _optimizer(model, cfg, s0)
+    t0 = time.perf_counter()
+    loss_v = float("nan")
+    for it in range(1, cfg.iters + 1):
+        frac = (it - 1) / max(cfg.iters, 1)
+        scale = 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * frac))  # cosine decay to 0.1x
+        for g in opt.param_groups:
+            g["lr"] = g["base_lr"] * scale
+        img = model.render()
+        loss = ((img - target) ** 2).mean()  # L2 (GaussianImage)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        loss_v = float(loss.detach())
+        if on_step is not None:
+            on_step(it, cfg.iters, loss_v, -10.0 * math.log10(max(loss_v, 1e-12)))
+    seconds = time.perf_counter() - t0
+    return model, {"seconds": seconds, "final_loss": loss_v, "num_primitives": n}
+
+
+def primitives_picture(model: Splats2D, scale: int = 2) -> "object":
+    """PIL image: each splat's 1-sigma ellipse outlined in its (clamped) colour on grey."""
+    from PIL import Image, ImageDraw
+
+    with torch.no_grad():
+        means = model.means_px() * scale
+        l11, l21, l22 = model.chol_factors()
+        cols = (model.colors.clamp(0, 1) * 255).round().to(torch.uint8).tolist()
+        t = torch.linspace(0, 2 * math.pi, 25)
+        circ = torch.stack([torch.cos(t), torch.sin(t)], -1)  # [T, 2]
+        ex = l11[:, None] * circ[None, :, 0]
+        ey = l21[:, None] * circ[None, :, 0] + l22[:, None] * circ[None, :, 1]  # L @ circle
+        pts = torch.stack([ex, ey], -1) * scale + means[:, None, :]
+    im = Image.new("RGB", (model.width * scale, model.height * scale), (40, 40, 40))
+    draw = ImageDraw.Draw(im)
+    for p, c in zip(pts.tolist(), cols):
+        draw.line([tuple(q) for q in p], fill=tuple(c), width=1)
+    return im
+
+
+def kernels_picture(model: Splats2D, count: int = 16, res: int = 48) -> "object":
+    """PIL image: k(u, v) of the ``count`` largest splats on a 4-wide mosaic."""
+    from PIL import Image
+
+    with torch.no_grad():
+        l11, l21, l22 = model.chol_factors()
+        order = torch.argsort(l11 * l22, descending=True)[:count]
+        g = torch.linspace(-1, 1, res)
+        vv, uu = torch.meshgrid(g, g, indexing="ij")
+        uv = torch.stack([uu, vv], -1).reshape(-1, 2)
+        table = model.kernel_table() if model.kernel == "learned" else None
+        tiles = []
+        for i in order.tolist():
+            idx = torch.full((uv.shape[0],), i, dtype=torch.long)
+            k = model.kernel_values(uv, idx, table).reshape(res, res)
+            k = k / k.abs().max().clamp_min(1e-8)
+            rgb = torch.stack([k.clamp(min=0), torch.zeros_like(k), (-k).clamp(min=0)], -1)
+            tiles.append(torch.nn.functional.pad(rgb.permute(2, 0, 1), (1, 1, 1, 1), value=0.3))
+    cols = 4
+    while len(tiles) % cols:
+        tiles.append(torch.full_like(tiles[0], 0.3))
+    rows = [torch.cat(tiles[r:r + cols], 2) for r in range(0, len(tiles), cols)]
+    arr = (torch.cat(rows, 1).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    return Image.fromarray(arr).resize((arr.shape[1] * 2, arr.shape[0] * 2), Image.NEAREST)
+
+
+def run_image_fit(photo: Path, out: Path, cfg: ImageFitConfig, overwrite: bool = False,
+                  on_step: Callable[[int, int, float, float], None] | None = None) -> Path:
+    """Fit ``photo`` and write the artefacts into ``out``; returns ``out / "metrics.json"``."""
+    out = Path(out)
+    if (out / "metrics.json").exists() and not overwrite:
+        raise InputError(out, "already holds a result", "pass --overwrite or choose another --out")
+    if cfg.downscale < 1:
+        raise InputError(None, f"downscale must be >= 1, got {cfg.downscale}")
+    target = load_photo(photo, cfg.downscale)
+    model, summary = fit_image(target, cfg, on_step)
+    out.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():
+        img = model.render().clamp(0, 1)
+    save_png(img, out / "render.png")
+    primitives_picture(model).save(out / "primitives.png")
+    if cfg.kernel != "gaussian":
+        kernels_picture(model).save(out / "kernels.png")
+    wanted = ("psnr", "ssim", "lpips") if cfg.lpips and lpips_available("alex") else ("psnr", "ssim")
+    m = compute_metrics(img, target, metrics=wanted)
+    m.setdefault("lpips", None)
+    sizes = model.describe_bytes()
+    result = {
+        "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
+        "bytes": sizes["bytes"], "num_primitives": summary["num_primitives"],
+        "kernel": cfg.kernel, "iterations": cfg.iters, "seconds": summary["seconds"],
+        "bytes_per_primitive": sizes["bytes_per_primitive"], "budget_bytes": cfg.budget_bytes,
+        "network_bytes": sizes["network_bytes"],
+        "network_floats": decoder_floats() if cfg.kernel == "learned" else 0,
+        "image": str(photo), "height": int(target.shape[0]), "width": int(target.shape[1]),
+        "config": asdict(cfg),
+    }
+    path = out / "metrics.json"
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    return path

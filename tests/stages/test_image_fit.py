@@ -1,0 +1,129 @@
+"""`splatk image`: learned planar kernel table vs exact decoder, byte accounting, short fits, CLI."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from splatk.models.image2d import (KERNELS, PlanarDecoder, Splats2D, bilinear, decoder_floats,
+                                   floats_per_primitive, num_primitives)
+from splatk.stages.image_fit import ImageFitConfig, fit_image
+
+
+def _learned(n=5, grid=8, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    m = Splats2D("learned", n, 16, 16, grid=grid, generator=gen)
+    with torch.no_grad():  # a non-trivial decoder (the init is the constant 1)
+        for p in m.decoder.parameters():
+            p.add_(0.5 * torch.randn(p.shape, generator=gen))
+        m.latents.normal_(0.0, 1.0, generator=gen)
+    return m
+
+
+def test_table_exact_at_nodes():
+    m = _learned()
+    table = m.kernel_table()
+    g = torch.linspace(-1, 1, m.grid)
+    vv, uu = torch.meshgrid(g, g, indexing="ij")
+    uv = torch.stack([uu, vv], -1).reshape(-1, 2)
+    for i in range(m.n):
+        idx = torch.full((uv.shape[0],), i, dtype=torch.long)
+        exact = m.decoder(uv, m.latents[idx])
+        # float32 round-off only
+        torch.testing.assert_close(bilinear(table, idx, uv), exact, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("grid", [4, 8])
+def test_table_vs_exact_bounded(grid):
+    """Between nodes the error is bounded by h^2/8 * max|second derivative| (piecewise linear MLP:
+    the bound is loose, so compare against the table's own value range instead)."""
+    m = _learned(grid=grid)
+    table = m.kernel_table()
+    gen = torch.Generator().manual_seed(1)
+    uv = torch.rand(4000, 2, generator=gen) * 2 - 1
+    idx = torch.randint(0, m.n, (4000,), generator=gen)
+    exact = m.decoder(uv, m.latents[idx])
+    approx = bilinear(table, idx, uv)
+    err = (approx - exact).abs()
+    spread = float((table.max() - table.min()).detach())
+    # measured: max err / spread ~0.05 (8x8) and ~0.15 (4x4) for this random decoder
+    assert float(err.max()) <= (0.12 if grid == 8 else 0.3) * spread
+    finer = Splats2D("learned", m.n, 16, 16, grid=4 * grid)
+    finer.load_state_dict(m.state_dict())
+    finer.grid = 4 * grid
+    err_fine = (bilinear(finer.kernel_table(), idx, uv) - exact).abs()
+    assert float(err_fine.mean()) < float(err.mean())  # converges as the grid refines
+
+
+def test_render_table_matches_exact_mode():
+    m = _learned(n=6)
+    m.exact = False
+    a = m.render()
+    m.exact = True
+    b = m.render()
+    assert float((a - b).abs().max()) <= 0.1 * float(b.abs().max()) + 1e-6
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("budget", [1000, 8192, 65536])
+def test_bytes_within_budget(kernel, budget):
+    n = num_primitives(kernel, budget)
+    m = Splats2D(kernel, max(n, 1), 8, 8)
+    per_prim = sum(p.numel() for name, p in m.named_parameters() if not name.startswith("decoder.")) // m.n
+    assert per_prim == floats_per_primitive(kernel)  # every per-primitive parameter is counted
+    assert n * 4 * per_prim <= budget < (n + 1) * 4 * per_prim
+    assert m.describe_bytes()["bytes"] == m.n * 4 * per_prim
+    if kernel == "learned":
+        assert decoder_floats() == sum(p.numel() for p in PlanarDecoder().parameters())
+        assert m.describe_bytes()["network_bytes"] == 4 * decoder_floats()
+
+
+def _synthetic(h=24, w=32):
+    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    img = torch.stack([0.5 + 0.4 * torch.sin(6 * x), 0.5 + 0.4 * torch.cos(5 * y), 0.3 + 0.5 * x * y], -1)
+    img[(x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.05] = torch.tensor([0.9, 0.2, 0.1])
+    return img
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_short_fit_raises_psnr(kernel):
+    torch.set_num_threads(1)
+    target = _synthetic()
+    cfg0 = ImageFitConfig(kernel=kernel, budget_bytes=40 * 4 * floats_per_primitive(kernel), iters=0)
+    m0, _ = fit_image(target, cfg0)
+    cfg = ImageFitConfig(kernel=kernel, budget_bytes=cfg0.budget_bytes, iters=60)
+    m1, _ = fit_image(target, cfg)
+
+    def psnr(m):
+        with torch.no_grad():
+            return -10 * math.log10(float(((m.render().clamp(0, 1) - target) ** 2).mean()))
+
+    assert psnr(m1) > psnr(m0) + 5.0
+
+
+def test_cli_writes_metrics(tmp_path):
+    from PIL import Image
+    from splatk_cli.main import cli
+
+    photo = tmp_path / "p.png"
+    Image.fromarray((_synthetic(32, 48).numpy() * 255).astype(np.uint8)).save(photo)
+    out = tmp_path / "run"
+    args = ["image", str(photo), "--kernel", "learned", "--budget-bytes", "2000", "--out", str(out),
+            "--iters", "5", "--downscale", "2", "--threads", "1", "-q", "--no-lpips"]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "lpips", "bytes", "num_primitives", "kernel", "iterations", "seconds"):
+        assert key in m
+    assert m["kernel"] == "learned" and m["iterations"] == 5
+    assert m["num_primitives"] == 2000 // 72 and m["bytes"] <= 2000
+    assert m["network_bytes"] == 4 * decoder_floats()
+    assert Image.open(out / "render.png").size == (24, 16)
+    assert (out / "primitives.png").is_file() and (out / "kernels.png").is_file()
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code == 2 and "overwrite" in again.output
