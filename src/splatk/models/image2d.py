@@ -180,14 +180,28 @@ class Splats2D(nn.Module):
         out = self.decoder(uv, self.latents[:, None, :])  # [N, G*G]
         return out.reshape(self.n, self.grid, self.grid)
 
-    def kernel_values(self, uv: Tensor, idx: Tensor, table: Tensor | None = None) -> Tensor:
-        """k(u, v) for samples ``uv`` [P, 2] of primitives ``idx`` [P] -> [P] (0 outside the disk)."""
+    def _extras(self) -> Tensor:
+        """[N, E] the kernel's own per-primitive values packed for one gather (E may be 0)."""
+        if self.kernel == "gabor":
+            return torch.cat([self.gabor_amps.reshape(self.n, -1), self.gabor_freqs.reshape(self.n, -1)], 1)
+        return self.chol.new_zeros(self.n, 0)
+
+    def kernel_values(self, uv: Tensor, idx: Tensor, table: Tensor | None = None,
+                      extras: Tensor | None = None) -> Tensor:
+        """k(u, v) for samples ``uv`` [P, 2] of primitives ``idx`` [P] -> [P] (0 outside the disk).
+
+        ``extras`` [P, E] are the gathered :meth:`_extras` rows (gathered here when None).
+        """
         r2 = (uv * uv).sum(-1)
         env = torch.exp(-0.5 * SUPPORT_SIGMAS**2 * r2) * (r2 <= 1.0)
         if self.kernel == "gaussian":
             return env
         if self.kernel == "gabor":
-            a, f = self.gabor_amps[idx], self.gabor_freqs[idx]  # [P, 2, K]
+            if extras is None:
+                extras = self._extras()[idx]
+            k = GABOR_WAVES
+            a = extras[:, :2 * k].reshape(-1, 2, k)
+            f = extras[:, 2 * k:].reshape(-1, 2, k)
             waves = (a * torch.cos(math.pi * f * uv[:, :, None])).sum(-1)  # [P, 2]
             return env * waves[:, 0] * waves[:, 1]
         if self.exact or table is None:
@@ -198,19 +212,20 @@ class Splats2D(nn.Module):
     @torch.no_grad()
     def _pairs(self, means: Tensor, l11: Tensor, l21: Tensor, l22: Tensor):
         """(splat index, pixel x, pixel y) for every pixel centre in each splat's 3-sigma bbox."""
-        rx = (SUPPORT_SIGMAS * l11).ceil().clamp(max=MAX_RADIUS).long()
-        ry = (SUPPORT_SIGMAS * torch.sqrt(l21 * l21 + l22 * l22)).ceil().clamp(max=MAX_RADIUS).long()
-        cx = means[:, 0].floor().long()
-        cy = means[:, 1].floor().long()
-        wx, wy = 2 * rx + 1, 2 * ry + 1
-        counts = wx * wy
-        idx = torch.repeat_interleave(torch.arange(self.n), counts)
-        starts = torch.cumsum(counts, 0) - counts
-        k = torch.arange(int(counts.sum())) - starts[idx]
-        px = cx[idx] + k % wx[idx] - rx[idx]
-        py = cy[idx] + k // wx[idx] - ry[idx]
+        rx = (SUPPORT_SIGMAS * l11).ceil().clamp(max=MAX_RADIUS).int()
+        ry = (SUPPORT_SIGMAS * torch.sqrt(l21 * l21 + l22 * l22)).ceil().clamp(max=MAX_RADIUS).int()
+        x0 = means[:, 0].floor().int() - rx
+        y0 = means[:, 1].floor().int() - ry
+        wx = 2 * rx + 1
+        counts = (wx * (2 * ry + 1)).long()
+        idx = torch.repeat_interleave(torch.arange(self.n, dtype=torch.int32), counts)
+        starts = (torch.cumsum(counts, 0) - counts).int()
+        k = torch.arange(int(counts.sum()), dtype=torch.int32) - torch.repeat_interleave(starts, counts)
+        wxp = torch.repeat_interleave(wx, counts)
+        px = torch.repeat_interleave(x0, counts) + k % wxp
+        py = torch.repeat_interleave(y0, counts) + k // wxp
         keep = (px >= 0) & (px < self.width) & (py >= 0) & (py < self.height)
-        return idx[keep], px[keep], py[keep]
+        return idx[keep].long(), px[keep], py[keep]
 
     def render(self) -> Tensor:
         """[H, W, 3] image (unclamped sum of the splats)."""
@@ -218,16 +233,19 @@ class Splats2D(nn.Module):
         l11, l21, l22 = self.chol_factors()
         table = self.kernel_table() if self.kernel == "learned" and not self.exact else None
         idx, px, py = self._pairs(means.detach(), l11.detach(), l21.detach(), l22.detach())
+        # one packed gather per chunk: mean 2, L 3, colour 3, kernel extras
+        packed = torch.cat([means, l11[:, None], l21[:, None], l22[:, None], self.colors, self._extras()], 1)
         out = torch.zeros(self.height * self.width, 3, dtype=means.dtype)
         for s in range(0, idx.numel(), CHUNK_PAIRS):
             i, x, y = idx[s:s + CHUNK_PAIRS], px[s:s + CHUNK_PAIRS], py[s:s + CHUNK_PAIRS]
-            dx = x.to(means.dtype) + 0.5 - means[i, 0]
-            dy = y.to(means.dtype) + 0.5 - means[i, 1]
-            u = dx / l11[i]
-            v = (dy - l21[i] * u) / l22[i]  # L^-1 (x - mu), forward substitution
-            uv = torch.stack([u, v], -1) / SUPPORT_SIGMAS
-            w = self.kernel_values(uv, i, table)
-            out = out.index_add(0, y * self.width + x, w[:, None] * self.colors[i])
+            g = packed.index_select(0, i)
+            dx = (x.to(means.dtype) + 0.5) - g[:, 0]
+            dy = (y.to(means.dtype) + 0.5) - g[:, 1]
+            u = dx / g[:, 2]
+            v = (dy - g[:, 3] * u) / g[:, 4]  # L^-1 (x - mu), forward substitution
+            uv = torch.stack([u, v], -1) * (1.0 / SUPPORT_SIGMAS)
+            w = self.kernel_values(uv, i, table, g[:, 8:])
+            out = out.index_add(0, (y * self.width + x).long(), w[:, None] * g[:, 5:8])
         return out.reshape(self.height, self.width, 3)
 
     def describe_bytes(self) -> dict:

@@ -1,0 +1,125 @@
+"""Image representation benchmark: learned vs gaussian vs gabor 2D splats at two byte budgets.
+
+    python benchmarks/images.py [--downscale 4] [--iters 300] [--budgets 8192,24576]
+                                [--images kodim01,kodim05] [--jobs 2] [--out PATH]
+
+Fits every photo in ../shared/data/images with every kernel at every budget (`splatk image`'s
+stage, float32 bytes of the per-primitive parameters; the learned kernel's shared 740-byte
+decoder is listed apart), one process per fit with torch.set_num_threads(1), up to --jobs at a
+time. Prints a table of PSNR / SSIM / LPIPS per (budget, kernel), averaged over the photos, the
+per-photo PSNR, and the issue's targets (learned >= gaussian + 0.5 dB and >= gabor on average);
+writes every fit's metrics to benchmarks/results/images.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+IMAGES = ROOT.parent / "shared" / "data" / "images"
+RESULTS = Path(__file__).resolve().parent / "results" / "images.json"
+KERNELS = ("gaussian", "gabor", "learned")
+
+_CHILD = """
+import json, sys, torch
+torch.set_num_threads(1)
+from pathlib import Path
+from splatk.stages.image_fit import ImageFitConfig, run_image_fit
+a = json.loads(sys.argv[1])
+cfg = ImageFitConfig(kernel=a["kernel"], budget_bytes=a["budget"], iters=a["iters"], seed=a["seed"],
+                     downscale=a["downscale"])
+p = run_image_fit(Path(a["photo"]), Path(a["out"]), cfg, overwrite=True)
+print(p.read_text())
+"""
+
+
+def fit_one(args: dict) -> dict:
+    res = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(args)], capture_output=True, text=True,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    if res.returncode != 0:
+        return {**args, "error": res.stderr[-2000:]}
+    m = json.loads(res.stdout)
+    m.pop("config", None)
+    return {**args, **m, "photo": Path(args["photo"]).stem}
+
+
+def mean(xs):
+    xs = [x for x in xs if x is not None]
+    return sum(xs) / len(xs) if xs else float("nan")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--downscale", type=int, default=4)
+    ap.add_argument("--iters", type=int, default=300)
+    ap.add_argument("--budgets", default="8192,24576", help="comma-separated byte budgets")
+    ap.add_argument("--images", default="", help="comma-separated stems (default: all six)")
+    ap.add_argument("--kernels", default=",".join(KERNELS))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=1, help="fits run at once (1 thread each)")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    a = ap.parse_args()
+    photos = sorted(IMAGES.glob("*.png"))
+    if a.images:
+        want = set(a.images.split(","))
+        photos = [p for p in photos if p.stem in want]
+    budgets = [int(b) for b in a.budgets.split(",")]
+    kernels = a.kernels.split(",")
+    t0 = time.time()
+    with tempfile.TemporaryDirectory() as tmp:
+        jobs = [{"photo": str(p), "kernel": k, "budget": b, "iters": a.iters, "seed": a.seed,
+                 "downscale": a.downscale, "out": f"{tmp}/{p.stem}_{k}_{b}"}
+                for b in budgets for p in photos for k in kernels]
+        with ThreadPoolExecutor(a.jobs) as pool:
+            rows = []
+            for r in pool.map(fit_one, jobs):
+                r.pop("out", None)
+                rows.append(r)
+                tag = "ERROR" if "error" in r else f"{r['psnr']:.2f} dB {r['seconds']:.0f} s"
+                print(f"  {Path(r['photo']).stem} {r['kernel']:8s} {r['budget']:6d} B: {tag}", flush=True)
+    wall = time.time() - t0
+    ok = [r for r in rows if "error" not in r]
+    print(f"\n{len(photos)} photos, downscale {a.downscale}, {a.iters} iterations, seed {a.seed}, "
+          f"wall {wall / 60:.1f} min\n")
+    print(f"{'budget':>7} {'kernel':9} {'prims':>6} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'s/fit':>6}")
+    summary = {}
+    for b in budgets:
+        for k in kernels:
+            sel = [r for r in ok if r["budget"] == b and r["kernel"] == k]
+            if not sel:
+                continue
+            s = {"psnr": mean([r["psnr"] for r in sel]), "ssim": mean([r["ssim"] for r in sel]),
+                 "lpips": mean([r["lpips"] for r in sel]), "seconds": mean([r["seconds"] for r in sel]),
+                 "num_primitives": sel[0]["num_primitives"], "n": len(sel)}
+            summary[f"{b}/{k}"] = s
+            print(f"{b:7d} {k:9} {s['num_primitives']:6d} {s['psnr']:6.2f} {s['ssim']:6.3f} "
+                  f"{s['lpips']:6.3f} {s['seconds']:6.0f}")
+        g, gb, lr = (summary.get(f"{b}/{k}") for k in ("gaussian", "gabor", "learned"))
+        if g and gb and lr:
+            print(f"{'':7} learned - gaussian {lr['psnr'] - g['psnr']:+.2f} dB (target +0.50), "
+                  f"learned - gabor {lr['psnr'] - gb['psnr']:+.2f} dB (target >= 0)")
+    print("\nper photo PSNR:")
+    for b in budgets:
+        for p in photos:
+            cells = {r["kernel"]: r["psnr"] for r in ok if r["budget"] == b and r["photo"] == p.stem}
+            print(f"{b:7d} {p.stem:8} " + " ".join(f"{k} {cells.get(k, float('nan')):6.2f}" for k in kernels))
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps({
+        "settings": {"downscale": a.downscale, "iters": a.iters, "budgets": budgets, "seed": a.seed,
+                     "images": [p.stem for p in photos], "kernels": kernels, "jobs": a.jobs,
+                     "threads_per_fit": 1, "wall_seconds": wall, "machine": platform.platform(),
+                     "command": " ".join(["python", "benchmarks/images.py"] + sys.argv[1:])},
+        "summary": summary, "runs": rows}, indent=2) + "\n")
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
