@@ -11,6 +11,8 @@ from splatk.stages.pretrain import TARGETS, PretrainConfig, run_pretrain
 
 
 @click.command("pretrain")
+@click.option("--kind", type=click.Choice(["volumetric", "planar"]), default="volumetric", show_default=True,
+              help="Which learned kernel: volumetric (radial profile) or planar (general 2D, Gaussian-surfel target; --target ignored).")
 @click.option("--target", type=click.Choice(TARGETS), default="cosine", show_default=True,
               help="Target profile d(r): cosine cos(pi/2 r^2), gaussian, polynomial (1-r^2)^2, linear 1-r.")
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True,
@@ -20,7 +22,7 @@ from splatk.stages.pretrain import TARGETS, PretrainConfig, run_pretrain
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def command(target, out, steps, seed, overwrite, quiet):
+def command(kind, target, out, steps, seed, overwrite, quiet):
     """Fit the learned kernel's networks to a target profile (paper Sec. 4.5).
 
     Use the result with `splatk fit --kernel learned --kernel-weights OUT`.
@@ -40,16 +42,29 @@ def command(target, out, steps, seed, overwrite, quiet):
         if step % 10 == 0 or step == total:
             progress.update(task["id"], completed=step, loss=loss)
 
+    if kind == "planar":
+        target = "surfel"
     if progress is not None:
         progress.start()
     try:
-        path = run_pretrain(target, out, steps=steps, seed=seed, on_step=on_step, overwrite=overwrite)
+        if kind == "planar":
+            from splatk.stages.pretrain_planar import PlanarPretrainConfig, run_pretrain_planar
+
+            pcfg = PlanarPretrainConfig(seed=seed) if steps == PretrainConfig.steps else \
+                PlanarPretrainConfig(steps=steps, seed=seed)
+            path = run_pretrain_planar(out, pcfg, on_step=on_step, overwrite=overwrite)
+        else:
+            path = run_pretrain(target, out, steps=steps, seed=seed, on_step=on_step, overwrite=overwrite)
     finally:
         if progress is not None:
             progress.stop()
     import json
 
     err = json.loads(path.with_suffix(".json").read_text())["error"]
+    if kind == "planar":
+        console.print(f"planar (Gaussian surfel): MAE {err['mae']:.4f}, max {err['max_abs']:.4f}")
+        click.echo(f"wrote {path}")
+        return
     console.print(f"{target}: MAE {err['mae']:.4f}, max {err['max_abs']:.4f}, "
                   f"|d(0) err| {err['mae_r0']:.4f}, |d(1) err| {err['mae_r1']:.4f}")
     click.echo(f"wrote {path}")

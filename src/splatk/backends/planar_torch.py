@@ -11,14 +11,44 @@ in (u, v, 1) space, so the intersection is (2DGS Eq. 9-10; peers.md Sec. 5)::
 
     (u', v', w') = h_u x h_v,      (u, v) = (u' / w', v' / w')
 
-This file holds that intersection (used by a planar rasteriser; the learned planar kernel then
-evaluates Phi_dec_planar(u, v, z) at it). The rasteriser itself is not written yet.
+:func:`rasterize_planar` is the dense pure-torch reference rasteriser built on it: every
+(pixel, splat) pair, (u, v) normalised by the 3-sigma extent (so the support is the unit disk),
+``alpha = min(0.999, o * k(u, v))``, pairs with ``alpha < 1/255`` skipped, front-to-back
+compositing by camera depth of the centres, as the volumetric contract in
+:mod:`splatk.backends`. It omits 2DGS's screen-space low-pass fallback (peers.md Sec. 5) and
+is meant for small images (tests, checks); a tiled / native planar backend is not written.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
+from . import ALPHA_MAX, ALPHA_MIN, RasterOutput
 from ..functional.projection import quats_to_rotmats
+
+
+def bilinear(table: torch.Tensor, idx: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Sample per-primitive tables at (u, v).
+
+    Args:
+        table: [N, G, G] values at nodes ``linspace(-1, 1, G)``, indexed [v, u].
+        idx: [P] primitive of each sample.
+        uv: [P, 2] in [-1, 1] (clamped).
+    Returns:
+        [P] bilinearly interpolated values (exact at the nodes).
+    """
+    g = table.shape[-1]
+    t = ((uv.clamp(-1.0, 1.0) + 1.0) * 0.5 * (g - 1))
+    i0 = t.detach().floor().clamp(0, g - 2)
+    f = t - i0
+    i0 = i0.long()
+    flat = table.reshape(-1)
+    base = idx * (g * g) + i0[:, 1] * g + i0[:, 0]
+    fu, fv = f[:, 0], f[:, 1]
+    t00, t01 = flat[base], flat[base + 1]
+    t10, t11 = flat[base + g], flat[base + g + 1]
+    return (t00 * (1 - fu) + t01 * fu) * (1 - fv) + (t10 * (1 - fu) + t11 * fu) * fv
 
 
 def splat_homographies(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -58,3 +88,49 @@ def ray_splat_uv(M: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
     h_v = -M[:, 1] + y * M[:, 2]
     c = torch.linalg.cross(h_u, h_v)
     return c[:, :2] / c[:, 2:3]
+
+
+def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                     opacities: torch.Tensor, colors: torch.Tensor, viewmat: torch.Tensor,
+                     K: torch.Tensor, width: int, height: int,
+                     kernel: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                     background: torch.Tensor | None = None) -> RasterOutput:
+    """Dense reference rasteriser for planar primitives.
+
+    Args:
+        means, quats, scales: [N, 3], [N, 4], [N, 2] disks (see :func:`splat_homographies`).
+        opacities: [N]; colors: [N, C].
+        viewmat, K: [4, 4] world->camera, [3, 3] intrinsics.
+        width, height: image size.
+        kernel: ``kernel(uv [P, 2], idx [P]) -> [P]`` opacity profile at normalised (u, v)
+            (unit disk support), e.g. ``lambda uv, idx: gaussian_surfel(uv)`` or a learned
+            planar kernel's table lookup.
+        background: [C] or None (zeros).
+    Returns:
+        RasterOutput(colors [H, W, C], alphas [H, W, 1]).
+    """
+    n = means.shape[0]
+    depth = (means @ viewmat[:3, :3].T + viewmat[:3, 3])[:, 2]
+    order = torch.argsort(depth, stable=True)
+    front = depth[order] > 1e-2
+    order = order[front]
+    M = splat_homographies(means[order], quats[order], scales[order], viewmat, K)  # [n', 3, 3]
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype) + 0.5,
+                            torch.arange(width, dtype=means.dtype) + 0.5, indexing="ij")
+    pix = torch.stack([xs, ys], -1).reshape(-1, 2)  # [HW, 2]
+    hw, m = pix.shape[0], order.numel()
+    pair_pix = pix[:, None, :].expand(hw, m, 2).reshape(-1, 2)
+    pair_idx = torch.arange(m).repeat(hw)
+    uv = ray_splat_uv(M[pair_idx], pair_pix) / 3.0  # 3-sigma extent -> unit disk
+    k = kernel(uv, order[pair_idx]).reshape(hw, m)
+    alpha = (opacities[order][None, :] * k).clamp(max=ALPHA_MAX)
+    alpha = alpha * (alpha >= ALPHA_MIN)
+    trans = torch.cumprod(torch.cat([torch.ones(hw, 1, dtype=alpha.dtype), 1.0 - alpha[:, :-1]], 1), 1)
+    w = alpha * trans
+    out = w @ colors[order]
+    t_final = trans[:, -1:] * (1.0 - alpha[:, -1:]) if m else torch.ones(hw, 1, dtype=means.dtype)
+    if background is not None:
+        out = out + t_final * background
+    c = colors.shape[-1]
+    del n
+    return RasterOutput(out.reshape(height, width, c), (1.0 - t_final).reshape(height, width, 1))

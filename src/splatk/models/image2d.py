@@ -46,6 +46,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..backends.planar_torch import bilinear
+
 KERNELS = ("gaussian", "gabor", "learned")
 #: support in sigmas (GaussianImage uses 3)
 SUPPORT_SIGMAS = 3.0
@@ -98,29 +100,6 @@ class PlanarDecoder(nn.Module):
         h = F.leaky_relu(h, LEAKY_SLOPE)
         h = F.leaky_relu(self.l2(h), LEAKY_SLOPE)
         return self.l3(h)[..., 0]
-
-
-def bilinear(table: Tensor, idx: Tensor, uv: Tensor) -> Tensor:
-    """Sample per-primitive tables at (u, v).
-
-    Args:
-        table: [N, G, G] values at nodes ``linspace(-1, 1, G)``, indexed [v, u].
-        idx: [P] primitive of each sample.
-        uv: [P, 2] in [-1, 1] (clamped).
-    Returns:
-        [P] bilinearly interpolated values (exact at the nodes).
-    """
-    g = table.shape[-1]
-    t = ((uv.clamp(-1.0, 1.0) + 1.0) * 0.5 * (g - 1))
-    i0 = t.detach().floor().clamp(0, g - 2)
-    f = t - i0
-    i0 = i0.long()
-    flat = table.reshape(-1)
-    base = idx * (g * g) + i0[:, 1] * g + i0[:, 0]
-    fu, fv = f[:, 0], f[:, 1]
-    t00, t01 = flat[base], flat[base + 1]
-    t10, t11 = flat[base + g], flat[base + g + 1]
-    return (t00 * (1 - fu) + t01 * fu) * (1 - fv) + (t10 * (1 - fu) + t11 * fu) * fv
 
 
 class Splats2D(nn.Module):
