@@ -68,3 +68,13 @@ def test_pretrain_planar_smoke(tmp_path):
     assert meta["target"] == "gaussian_surfel" and math.isfinite(meta["error"]["mae"])
     obj = torch.load(p, weights_only=True)
     LearnedPlanarKernel().load_state_dict(obj["state_dict"])
+
+
+def test_cli_pretrain_planar(tmp_path):
+    from click.testing import CliRunner
+    from splatk_cli.main import cli
+
+    out = tmp_path / "p.pt"
+    res = CliRunner().invoke(cli, ["pretrain", "--kind", "planar", "--out", str(out), "--steps", "5", "-q"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(out.with_suffix(".json").read_text())["config"]["steps"] == 5
