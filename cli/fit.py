@@ -53,6 +53,7 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
     task = {}
 
     def on_start(info):
+        task["started"] = True
         s = info["scene"]
         console.print(
             f"[bold]splatk fit[/] {s.root}: {len(s.train)} train / {len(s.test)} test views "
@@ -75,25 +76,36 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
             progress.update(task["id"], completed=info.it, total=total, loss=info.loss, psnr=info.psnr,
                             num=info.num_primitives, rate=rate)
 
-    stop = {"flag": False}
+    stop = {"flag": False, "signal": None}
 
-    def handle_sigterm(signum, frame):
-        stop["flag"] = True
+    def handle_signal(signum, frame):
+        # SIGTERM and the first Ctrl-C stop at the next iteration boundary, so the checkpoint
+        # holds whole iterations (a KeyboardInterrupt can land inside density control, between
+        # two tensors' updates); a second Ctrl-C, or one before training started, stops at once
+        if signum == signal.SIGINT and (stop["flag"] or not task.get("started")):
+            raise KeyboardInterrupt
+        stop["flag"], stop["signal"] = True, signum
 
-    old = signal.signal(signal.SIGTERM, handle_sigterm)
+    old = signal.signal(signal.SIGTERM, handle_signal)
+    old_int = signal.signal(signal.SIGINT, handle_signal)
     try:
         run = run_fit(scene, out, cfg, overwrite=overwrite, resume=resume, config_sources=sources,
                       on_start=on_start, on_step=on_step, should_stop=lambda: stop["flag"])
     except KeyboardInterrupt:
         if progress is not None:
             progress.stop()
-        console.print(f"[yellow]interrupted; checkpoint saved, continue with: splatk fit --resume --out {out}")
+        if task.get("started"):
+            console.print(f"[yellow]interrupted; checkpoint saved, continue with: splatk fit --resume --out {out}")
         raise SystemExit(130)
     finally:
         signal.signal(signal.SIGTERM, old)
+        signal.signal(signal.SIGINT, old_int)
         if progress is not None:
             progress.stop()
     console.print(f"wrote {run / 'model.pt'}")
+    if stop["signal"] == signal.SIGINT:
+        console.print(f"[yellow]stopped by Ctrl-C; checkpoint saved, continue with: splatk fit --resume --out {out}")
+        raise SystemExit(130)
 
 
 def build_fit_config(values: dict) -> FitConfig:

@@ -99,8 +99,8 @@ def image_size(path: Path) -> tuple[int, int]:
         with Image.open(path) as im:
             return int(im.size[0]), int(im.size[1])
     except (UnidentifiedImageError, OSError, ValueError) as e:
-        raise InputError(path, f"image cannot be decoded ({type(e).__name__})",
-                         "the file is corrupt or not an image; re-copy or replace it") from None
+        raise InputError(path, "image cannot be decoded (corrupt, truncated or not an image)",
+                         "re-copy or replace the file, or remove it from the scene") from None
 
 
 def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:

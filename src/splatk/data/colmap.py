@@ -82,7 +82,7 @@ class _Reader:
     def count(self, min_record: int, what: str) -> int:
         (n,) = self.take("<Q", f"the number of {what}")
         if n * min_record > len(self.buf) - self.pos:
-            raise self.truncated(f"{n} {what} cannot fit in the file")
+            raise self.truncated(f"its header counts {n} {what}, more than the {len(self.buf)}-byte file holds")
         return n
 
     def done(self) -> None:
@@ -99,7 +99,9 @@ def _check_binary(model: Path) -> None:
     for _ in range(r.count(24, "cameras")):
         cid, mid, w, h = r.take("<iiQQ", "a camera record")
         if mid not in models:
-            raise r.truncated(f"unknown camera model id {mid}")
+            raise InputError(r.path, f"camera {cid} has unknown camera model id {mid} (byte {r.pos - 24} "
+                             "of the file)", "the file is corrupt or not a COLMAP cameras.bin; re-copy it or "
+                             f"re-export the model with one of {', '.join(SUPPORTED_MODELS)}")
         name, nparams = models[mid]
         if name not in SUPPORTED_MODELS:
             raise _unsupported(r.path, name, f"camera {cid}")

@@ -14,6 +14,7 @@ import json
 import math
 import os
 import shutil
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -76,25 +77,77 @@ class FitConfig:
         return cls(train=train, **d)
 
 
+def check_run_dir(out: Path, overwrite: bool) -> None:
+    """Refuse a non-empty ``out`` without ``overwrite`` and an unwritable one, touching nothing.
+
+    Called before the scene is loaded, so a bad scene or a refused folder never costs an
+    existing run (``prepare_run_dir`` replaces the folder only after the inputs checked out).
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "output path exists and is a file, not a folder", "choose another --out")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise InputError(out, "output folder exists and is not empty",
+                         "pass --overwrite, --resume, or choose another --out")
+    probe_dir = out
+    while not probe_dir.exists() and probe_dir != probe_dir.parent:
+        probe_dir = probe_dir.parent
+    if not probe_dir.is_dir():
+        raise InputError(out, f"cannot create output folder: {probe_dir} is not a folder",
+                         "choose a writable --out")
+    try:
+        with tempfile.TemporaryFile(dir=probe_dir):
+            pass
+    except OSError as e:
+        where = "output folder is not writable" if probe_dir == out else f"cannot create output folder in {probe_dir}"
+        raise InputError(out, f"{where} ({e.strerror or e})", "choose a writable --out") from None
+
+
 def prepare_run_dir(out: Path, overwrite: bool, resume: bool) -> None:
     out = Path(out)
     if resume:
         if not (out / "checkpoints" / "last.pt").is_file():
             raise InputError(out, "no checkpoint to resume from", "run without --resume")
         return
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise InputError(out, "output folder exists and is not empty",
-                             "pass --overwrite, --resume, or choose another --out")
-        shutil.rmtree(out)
+    check_run_dir(out, overwrite)
     try:
+        if out.exists() and any(out.iterdir()):
+            shutil.rmtree(out)
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write_test"
         probe.write_bytes(b"x")
         probe.unlink()
     except OSError as e:
-        raise InputError(out, f"cannot write output folder ({e.strerror})",
+        raise InputError(out, f"cannot write output folder ({e.strerror or e})",
                          "choose a writable --out") from e
+
+
+def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
+    """(scene path, settings, checkpoint) of the run in ``out``; InputError if any is unusable."""
+    out = Path(out)
+    ckpt_path = out / "checkpoints" / "last.pt"
+    if not ckpt_path.is_file():
+        raise InputError(out, "no checkpoint to resume from (checkpoints/last.pt is missing)",
+                         "run without --resume")
+    cfg_path = out / "config.yaml"
+    try:
+        saved = yaml.safe_load(cfg_path.read_text())
+        scene_path = saved["scene"]
+        cfg = FitConfig.from_dict(saved["settings"])
+    except FileNotFoundError:
+        raise InputError(cfg_path, "run settings are missing", "run without --resume") from None
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as e:
+        raise InputError(cfg_path, f"run settings cannot be read ({type(e).__name__}: {e})",
+                         "restore the file or run without --resume") from None
+    try:
+        state = torch.load(ckpt_path, map_location=cfg.device, weights_only=False)
+        if not isinstance(state, dict) or "trainer" not in state:
+            raise ValueError("not a splatk checkpoint")
+    except Exception as e:  # noqa: BLE001 - truncated zip, unpickling error, wrong file ...
+        msg = str(e).strip().splitlines()[0][:120] if str(e).strip() else type(e).__name__
+        raise InputError(ckpt_path, f"checkpoint is corrupt or truncated ({msg})",
+                         "delete the run folder and start again without --resume") from None
+    return scene_path, cfg, state
 
 
 def build_model(scene, cfg: FitConfig) -> SplatModel:
@@ -128,24 +181,27 @@ def run_fit(
     from RUN/checkpoints/last.pt (parameters, optimiser, RNGs, density control).
     """
     out = Path(out)
-    prepare_run_dir(out, overwrite, resume)
+    state = None
     if resume:
-        saved = yaml.safe_load((out / "config.yaml").read_text())
-        scene_path = saved["scene"]
-        cfg = FitConfig.from_dict(saved["settings"])
+        scene_path, cfg, state = load_resume_state(out)
+    else:
+        check_run_dir(out, overwrite)  # refuse early; replace only once the inputs checked out
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every,
                        background=tuple(cfg.background) if cfg.background else None)
     if len(scene.train) == 0:
         raise InputError(scene_path, "no training images found")
+    torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
     model = build_model(scene, cfg)
     trainer = Trainer(scene, model, cfg.train)
     ckpt_path = out / "checkpoints" / "last.pt"
     if resume:
-        state = torch.load(ckpt_path, map_location=cfg.device, weights_only=False)
         trainer.load_state_dict(state["trainer"])
+        del state
+        _clean_resume_leftovers(out, trainer.it)
     else:
+        prepare_run_dir(out, overwrite, resume=False)
         _write_config(out, scene_path, cfg, config_sources or {})
     spec = model_spec(trainer.model, cfg.kernel_options, _color_options(cfg))
     meta = {
@@ -159,8 +215,12 @@ def run_fit(
         on_start({"scene": scene, "model": trainer.model, "iters": cfg.train.iters,
                   "start_it": trainer.it, "backend": cfg.train.backend})
 
+    saved_it = {"it": trainer.it if resume else None}
+
     def checkpoint(tr: Trainer) -> None:
-        atomic_torch_save({"trainer": tr.state_dict(), "spec": spec, "meta": meta}, ckpt_path)
+        state = {"trainer": tr.state_dict(), "spec": spec, "meta": meta}
+        _save(lambda: atomic_torch_save(state, ckpt_path), ckpt_path, out, saved_it["it"])
+        saved_it["it"] = tr.it
 
     log = open(out / "train_log.jsonl", "a")
 
@@ -176,15 +236,16 @@ def run_fit(
     wall0 = time.time()
     interrupted = False
     try:
-        trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
+        try:
+            trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
+        except KeyboardInterrupt:
+            interrupted = True
         checkpoint(trainer)
+    finally:
         log.close()
     if interrupted:
         raise KeyboardInterrupt
-    save_model(trainer.model, out / "model.pt", spec, meta)
+    _save(lambda: save_model(trainer.model, out / "model.pt", spec, meta), out / "model.pt", out, saved_it["it"])
     summary = {
         "iterations": trainer.it,
         "train_seconds": round(trainer.elapsed, 2),
@@ -198,6 +259,39 @@ def run_fit(
     }
     (out / "fit.json").write_text(json.dumps(summary, indent=2))
     return out
+
+
+def _save(write: Callable[[], object], path: Path, out: Path, kept_it: int | None) -> None:
+    """Run an atomic write; a full disk or a permission problem becomes an InputError.
+
+    The atomic write leaves the previous file in place, so the message can say what survives.
+    """
+    try:
+        write()
+    except OSError as e:
+        kept = (f"the checkpoint of iteration {kept_it} is intact; " if kept_it is not None else "")
+        raise InputError(path, f"cannot write ({e.strerror or e})",
+                         f"free disk space or fix permissions; {kept}continue with `splatk fit --resume "
+                         f"--out {out}`") from None
+
+
+def _clean_resume_leftovers(out: Path, it: int) -> None:
+    """Before continuing at iteration ``it``: drop temp files of a write that was killed and the
+    log lines written after the checkpoint (they are about to be written again)."""
+    for tmp in (out / "checkpoints").glob("*.tmp"):
+        tmp.unlink(missing_ok=True)
+    for tmp in out.glob("model.pt.*.tmp"):
+        tmp.unlink(missing_ok=True)
+    log = out / "train_log.jsonl"
+    if log.is_file():
+        keep = []
+        for line in log.read_text().splitlines():
+            try:
+                if json.loads(line)["it"] <= it:
+                    keep.append(line)
+            except (ValueError, KeyError, TypeError):
+                continue  # a line cut off by the kill
+        log.write_text("".join(x + "\n" for x in keep))
 
 
 def _write_config(out: Path, scene_path, cfg: FitConfig, sources: dict) -> None:

@@ -201,7 +201,8 @@ class Trainer:
         on_checkpoint: Callable[["Trainer"], None] | None = None,
         checkpoint_every: int = 1000,
     ) -> None:
-        torch.manual_seed(self.cfg.seed + self.it)
+        if self.it == 0:  # a resumed run has the global RNG of its checkpoint (load_state_dict)
+            torch.manual_seed(self.cfg.seed)
         while not self.done():
             info = self.train_step()
             if on_step:
@@ -241,9 +242,11 @@ class Trainer:
         )
         self.model.kernel.load_state_dict(sd["kernel"])
         self._build_optimizers()
-        self.opt.load_state_dict(sd["opt"])
+        # deep copy: Optimizer.load_state_dict keeps the given tensors, and Adam updates its
+        # moments and step counts in place, which would rewrite a rollback snapshot
+        self.opt.load_state_dict(copy.deepcopy(sd["opt"]))
         if self.net_opt is not None and sd.get("net_opt") is not None:
-            self.net_opt.load_state_dict(sd["net_opt"])
+            self.net_opt.load_state_dict(copy.deepcopy(sd["net_opt"]))
         self.view_gen.set_state(sd["view_gen"])
         self.mcmc_gen.set_state(sd["mcmc_gen"])
         self._view_queue = list(sd["view_queue"])
