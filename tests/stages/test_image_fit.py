@@ -61,6 +61,7 @@ def test_table_vs_exact_bounded(grid):
     assert float(err_fine.mean().detach()) < float(err.mean())  # converges as the grid refines
 
 
+@torch.no_grad()
 def test_render_table_matches_exact_mode():
     m = _learned(n=6)
     m.exact = False
