@@ -1,6 +1,7 @@
 """Rasteriser benchmark: forward and forward+backward time and peak memory per backend.
 
-    python benchmarks/raster.py [--quick] [--threads 2] [--reps 7] [--out PATH]
+    python benchmarks/raster.py [--quick] [--threads 2] [--reps 7] [--backends cpu,torch]
+                                [--out PATH]
 
 Scenes follow ../shared/reference/cpu-peers.md: N splats with centres uniform over the image,
 depths U(2, 8), two projected sigmas log-uniform in [0.5, 4] px at width 512 (scaled with the
@@ -146,14 +147,14 @@ def run_one(cfg: dict) -> dict:
     return res
 
 
-def configs(quick: bool, threads: int, reps: int) -> list[dict]:
+def configs(quick: bool, threads: int, reps: int, backends: list[str]) -> list[dict]:
     sizes = SIZES[:1] if quick else SIZES
     counts = COUNTS[:2] if quick else COUNTS
     out = []
     for kind, k in PROFILES:
         for width, height in sizes:
             for n in counts:
-                for backend in ("cpu", "torch"):
+                for backend in backends:
                     out.append(dict(kind=kind, k=k, n=n, width=width, height=height,
                                     backend=backend, threads=threads, reps=reps,
                                     skip=backend == "torch" and n > TORCH_MAX_N))
@@ -220,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="512x512 and N <= 50k only")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=7, help="timed repetitions (median), >= 5")
+    ap.add_argument("--backends", default="cpu,torch", help="comma-separated backends to time")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one JSON config
     args = ap.parse_args(argv)
@@ -234,7 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     info = machine_info()
     info["threads"] = args.threads
     rows = []
-    for cfg in configs(args.quick, args.threads, max(args.reps, 5)):
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    for cfg in configs(args.quick, args.threads, max(args.reps, 5), backends):
         if cfg["skip"]:
             rows.append(cfg)
             continue

@@ -111,12 +111,29 @@ class _FileLock:
         self.fh.close()
 
 
+def _import_built(name: str, path: Path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def _build():
     from torch.utils import cpp_extension
 
     flags = _flags()
     key = _build_key(flags)
+    name = f"splatk_cpu_{key}"
     build_dir = cache_dir() / "ext" / key
+    built = build_dir / f"{name}.so"
+    done = build_dir / ".splatk-built"  # written after a complete build of this exact key
+    if done.exists() and built.exists():
+        try:  # the key covers sources, flags and torch: skip torch's ninja up-to-date check
+            return _import_built(name, built)
+        except ImportError:
+            pass
     build_dir.mkdir(parents=True, exist_ok=True)
     with _FileLock(build_dir / ".splatk-build.lock"):
         # torch's own FileBaton ("lock") is only left behind by a build that died; we hold the
@@ -124,8 +141,8 @@ def _build():
         baton = build_dir / "lock"
         if baton.exists():
             baton.unlink()
-        return cpp_extension.load(
-            name=f"splatk_cpu_{key}",
+        module = cpp_extension.load(
+            name=name,
             sources=[str(_CSRC / s) for s in _SOURCES],
             extra_cflags=flags,
             extra_ldflags=["-fopenmp"],
@@ -133,6 +150,8 @@ def _build():
             build_directory=str(build_dir),
             verbose=os.environ.get("SPLATK_BUILD_VERBOSE") == "1",
         )
+        done.write_text(f"{torch.__version__} {' '.join(flags)}\n")
+        return module
 
 
 def load_extension():

@@ -24,6 +24,9 @@
 //   dL/dalpha_i = T_i (dL/dC . c_i) + (T_final (dL/dA - dL/dC . bg) - W) / (1 - alpha_i).
 //   Per-entry gradients go to one slot per (primitive, tile) entry, then a deterministic
 //   per-primitive sum (no atomics, bitwise reproducible for any thread count).
+// Built with -ffp-contract=off: r2 = a dx^2 + 2 b dx dy + c dy^2 rounds op by op like the
+// reference's, so support and 1/255 decisions match it bit for bit (and the forward and backward
+// passes agree on them by construction); explicit fmadd() only where values accumulate.
 #pragma once
 
 #include "raster_kernels.h"
