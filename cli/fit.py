@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 from rich.console import Console
 
+from splatk.stages.autobudget import AutoBudgetConfig
 from splatk.stages.fit import FitConfig, run_fit
 from splatk.train.trainer import TrainConfig
 
@@ -30,7 +31,8 @@ _TRAIN_FIELDS = {f.name for f in fields(TrainConfig)}
 @click.option("--primitive", type=click.Choice(["volumetric", "planar"]), help="Primitive type. [default: volumetric]")
 @click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend. [default: auto]")
 @click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
-@click.option("--budget", help="Maximum number of primitives. [default: 100000]")
+@click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: grow from N/8 (N: 100000) "
+              "while held-out train views gain > 0.2 dB per doubling (at most 4N), then prune. [default: 100000]")
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
 @click.option("--downscale", type=float, help="Image downscale factor. [default: 1]")
@@ -102,6 +104,14 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         signal.signal(signal.SIGINT, old_int)
         if progress is not None:
             progress.stop()
+    if cfg.auto_budget is not None:
+        import json
+
+        rep = json.loads((run / "fit.json").read_text()).get("auto_budget") or {}
+        stages = ", ".join(f"{st['budget']:,}: {st['holdout_psnr']:.2f} dB" for st in rep.get("stages", []))
+        prune = rep.get("prune") or {}
+        console.print(f"auto budget: chose {rep.get('chosen_budget')} ({stages}); "
+                      f"pruned {prune.get('pruned', 0)} primitives")
     console.print(f"wrote {run / 'model.pt'}")
     if stop["signal"] == signal.SIGINT:
         console.print(f"[yellow]stopped by Ctrl-C; checkpoint saved, continue with: splatk fit --resume --out {out}")
@@ -120,11 +130,19 @@ def build_fit_config(values: dict) -> FitConfig:
     if "kernel_weights" in v:
         cfg.kernel_options["weights"] = str(v["kernel_weights"])
     t = cfg.train
-    if "budget" in v:
+    if "budget" in v and str(v["budget"]).strip().lower().startswith("auto"):
+        cfg.auto_budget = AutoBudgetConfig()  # sizes relative to the reference budget
+        ref = str(v["budget"]).strip()[4:].lstrip(":")
+        if ref:
+            try:
+                t.budget = int(float(ref))
+            except ValueError:
+                raise click.BadParameter(f"--budget {v['budget']!r}: use auto or auto:N (N primitives)") from None
+    elif "budget" in v:
         try:
             t.budget = int(float(v["budget"]))
         except ValueError:
-            raise click.BadParameter(f"--budget {v['budget']!r}: give a number of primitives") from None
+            raise click.BadParameter(f"--budget {v['budget']!r}: give a number of primitives or auto") from None
     for name in ("iters", "seed", "init"):
         if name in v:
             setattr(t, name, v[name])

@@ -5,7 +5,8 @@ Run folder layout::
     RUN/config.yaml          resolved settings, with where each value came from
     RUN/checkpoints/last.pt  full training state, written atomically every N iterations
     RUN/model.pt             final model (native format; `splatk export` converts it)
-    RUN/fit.json             summary: iterations, wall time, primitives, events (NaN rollbacks)
+    RUN/fit.json             summary: iterations, wall time, primitives, events (NaN rollbacks),
+                             test PSNR of the initial model, the auto-budget report
     RUN/train_log.jsonl      loss / PSNR / primitive count every 100 iterations
 """
 from __future__ import annotations
@@ -29,6 +30,7 @@ from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
 from ..models.volumetric import SplatModel
 from ..train.trainer import StepInfo, TrainConfig, Trainer
+from .autobudget import AutoBudget, AutoBudgetConfig, render_psnr, split_holdout
 
 
 @dataclass
@@ -51,6 +53,8 @@ class FitConfig:
     downscale: float = 1.0
     #: every n-th image is a test view when the dataset names none
     test_every: int = 8
+    #: train on every n-th train view only (4: a quarter of them); test views are unaffected
+    view_stride: int = 1
     #: background colour for RGBA data and renders (None: the loader's default)
     background: list | None = None
     #: rasteriser backend: auto | torch | cpu
@@ -61,6 +65,8 @@ class FitConfig:
     threads: int = 0
     #: checkpoint every n iterations (and on Ctrl-C)
     checkpoint_every: int = 1000
+    #: choose the budget from held-out train views (`--budget auto`); None: use train.budget
+    auto_budget: AutoBudgetConfig | None = None
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def to_dict(self) -> dict:
@@ -70,6 +76,8 @@ class FitConfig:
     def from_dict(cls, d: dict) -> "FitConfig":
         d = dict(d)
         train = TrainConfig(**d.pop("train", {}))
+        if isinstance(d.get("auto_budget"), dict):
+            d["auto_budget"] = AutoBudgetConfig(**d["auto_budget"])
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
@@ -150,8 +158,10 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
     return scene_path, cfg, state
 
 
-def build_model(scene, cfg: FitConfig) -> SplatModel:
-    pts, cols = initial_points(scene, cfg.train.init, cfg.train.budget, cfg.train.random_points,
+def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel:
+    """Initial model; ``budget`` (default ``cfg.train.budget``) caps the initial points."""
+    budget = cfg.train.budget if budget is None else budget
+    pts, cols = initial_points(scene, cfg.train.init, budget, cfg.train.random_points,
                                cfg.train.seed)
     # Random points start 10x smaller than their neighbour spacing (3DGS-MCMC's init_scale 0.1):
     # at full spacing they blanket every view and take thousands of iterations to clear.
@@ -190,19 +200,34 @@ def run_fit(
         torch.set_num_threads(cfg.threads)
     scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every,
                        background=tuple(cfg.background) if cfg.background else None)
+    if cfg.view_stride > 1:
+        scene.train = scene.train[::cfg.view_stride]
     if len(scene.train) == 0:
         raise InputError(scene_path, "no training images found")
+    auto, holdout = None, []
+    if cfg.auto_budget is not None:
+        try:
+            scene.train, holdout = split_holdout(scene.train, cfg.auto_budget.holdout_every)
+        except ValueError as e:
+            raise InputError(scene_path, str(e), "use a number for --budget") from None
+        auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.refine_stop)
     torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
-    model = build_model(scene, cfg)
+    model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
     trainer = Trainer(scene, model, cfg.train)
     ckpt_path = out / "checkpoints" / "last.pt"
     if resume:
+        if auto is not None and state.get("auto_budget") is not None:
+            auto.load_state_dict(state["auto_budget"])
+            if auto.holdout_returned:  # the optimiser's view list (and its queue) included them
+                auto.return_holdout(trainer, holdout)
         trainer.load_state_dict(state["trainer"])
+        initial_psnr = state.get("initial_psnr")
         del state
         _clean_resume_leftovers(out, trainer.it)
     else:
         prepare_run_dir(out, overwrite, resume=False)
         _write_config(out, scene_path, cfg, config_sources or {})
+        initial_psnr = render_psnr(trainer.model, scene.test, scene.background, cfg.train.backend)
     spec = model_spec(trainer.model, cfg.kernel_options, _color_options(cfg))
     meta = {
         "scene": str(Path(scene_path).resolve()),
@@ -218,7 +243,8 @@ def run_fit(
     saved_it = {"it": trainer.it if resume else None}
 
     def checkpoint(tr: Trainer) -> None:
-        state = {"trainer": tr.state_dict(), "spec": spec, "meta": meta}
+        state = {"trainer": tr.state_dict(), "spec": spec, "meta": meta, "initial_psnr": initial_psnr,
+                 "auto_budget": auto.state_dict() if auto is not None else None}
         _save(lambda: atomic_torch_save(state, ckpt_path), ckpt_path, out, saved_it["it"])
         saved_it["it"] = tr.it
 
@@ -237,7 +263,10 @@ def run_fit(
     interrupted = False
     try:
         try:
-            trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
+            if auto is not None:
+                auto.run(trainer, holdout, step, should_stop, checkpoint, cfg.checkpoint_every)
+            else:
+                trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
         except KeyboardInterrupt:
             interrupted = True
         checkpoint(trainer)
@@ -256,7 +285,12 @@ def run_fit(
         "color": cfg.color,
         "backend": cfg.train.backend,
         "events": trainer.events,
+        "initial_psnr": initial_psnr,
+        "view_stride": cfg.view_stride,
+        "train_views": len(trainer.scene.train),
     }
+    if auto is not None:
+        summary["auto_budget"] = auto.report(holdout)
     (out / "fit.json").write_text(json.dumps(summary, indent=2))
     return out
 

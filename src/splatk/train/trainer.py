@@ -49,6 +49,8 @@ class TrainConfig:
     refine_start: int = 500
     refine_stop: float = 25 / 30
     noise_lr: float = 5e4
+    #: multiplies every learning rate (primitives, colour, kernel networks); 1 = the defaults
+    lr_scale: float = 1.0
     backend: str = "auto"
     device: str = "cpu"
     #: keep an in-memory snapshot this often for NaN rollback
@@ -125,15 +127,16 @@ class Trainer:
         t0 = time.perf_counter()
         self.it += 1
         p = self.progress()
-        means_lr = self.means_lr(p) * self.lr_scale
+        lr_scale = self.lr_scale * self.cfg.lr_scale  # rollback halving x the configured multiplier
+        means_lr = self.means_lr(p) * lr_scale
         self.opt.set_lr("means", means_lr)
-        if self.lr_scale != 1.0:
+        if lr_scale != 1.0:
             for name, lr in self.opt.base_lrs.items():
                 if name != "means":
-                    self.opt.set_lr(name, lr * self.lr_scale)
+                    self.opt.set_lr(name, lr * lr_scale)
         if self.net_opt is not None:
             for g in self.net_opt.param_groups:
-                g["lr"] = self.model.kernel.network_learning_rate(self.it, p) * self.lr_scale
+                g["lr"] = self.model.kernel.network_learning_rate(self.it, p) * lr_scale
         vi = self._next_view()
         cam = self.scene.train[vi]
         target = self.targets[vi]
@@ -174,16 +177,18 @@ class Trainer:
 
     def _rollback(self, reason: str) -> str:
         """Never die of a NaN: restore the last good state, halve the step sizes, go on."""
-        it = self.it
+        it, lr_scale = self.it, self.lr_scale
         if self._snapshot is not None:
-            elapsed = self.elapsed
+            # the clock, the event log and the step-size cut survive the restore: restoring the
+            # snapshot's own lr_scale would retry the same diverging steps forever
+            elapsed, events = self.elapsed, list(self.events)
             self.load_state_dict(self._snapshot)
-            self.elapsed = elapsed
+            self.elapsed, self.events = elapsed, events
         else:  # NaN before the first snapshot: drop the non-finite primitives' updates
             with torch.no_grad():
                 for p in self.model.prims.values():
                     p.data = torch.nan_to_num(p.data, nan=0.0, posinf=0.0, neginf=0.0)
-        self.lr_scale *= 0.5
+        self.lr_scale = lr_scale * 0.5
         msg = f"iteration {it}: {reason}; rolled back to iteration {self.it}, step size x{self.lr_scale:g}"
         self.events.append({"iteration": it, "event": "nan_rollback", "message": msg})
         return msg
@@ -203,6 +208,8 @@ class Trainer:
     ) -> None:
         if self.it == 0:  # a resumed run has the global RNG of its checkpoint (load_state_dict)
             torch.manual_seed(self.cfg.seed)
+        if self._snapshot is None:  # a NaN before the first periodic snapshot goes back to here
+            self._snapshot = self.state_dict()
         while not self.done():
             info = self.train_step()
             if on_step:

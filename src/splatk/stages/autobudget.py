@@ -1,0 +1,297 @@
+"""`splatk fit --budget auto`: choose the primitive budget from held-out train views.
+
+The run starts small (``start_fraction`` x the fit's budget) and trains in stages, each for
+``stage_share`` of the run (iterations, or the time budget). After a stage, the mean PSNR on
+train views held back from the optimiser (every ``holdout_every``-th train view; the test
+views are never looked at) decides: if the last doubling gained more than ``threshold_db`` the
+MCMC cap doubles and the *same* model trains on (warm start); otherwise the model goes back to
+its state before that doubling, whose budget is the chosen one, and trains at it for the rest of
+the run. While choosing, MCMC refines often enough for a doubling (15 growth steps of 5%) to fit
+in half a stage. The gain of a doubling therefore also includes one stage's worth of extra training:
+it is an upper bound on what the extra primitives bought.
+
+At the end, primitives that contribute nothing are pruned: opacity below ``prune_opacity``,
+or a blending weight ``T * alpha`` summed over every pixel of every train view below
+``prune_weight`` (which bounds the largest single weight, so such a primitive never moves any
+pixel of any train view by more than ``prune_weight``; never-visible ones sum to 0).
+
+Everything is reported in RUN/fit.json under ``auto_budget``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import nn
+
+from ..colors.base import ColorModel
+from ..data.types import Camera
+from ..metrics import psnr
+from ..train.trainer import StepInfo, Trainer
+
+
+@dataclass
+class AutoBudgetConfig:
+    """Settings of ``--budget auto`` (the fit's ``train.budget`` is the reference size)."""
+
+    #: first budget = start_fraction x the fit's budget (100,000 -> 12,500)
+    start_fraction: float = 0.125
+    #: largest budget tried = max_factor x the fit's budget
+    max_factor: float = 4.0
+    #: keep doubling while a doubling gains more than this on the held-out views (dB)
+    threshold_db: float = 0.2
+    #: each stage trains for this share of the run (of the iterations, or of the time budget)
+    stage_share: float = 0.125
+    #: every n-th train view is held back from the optimiser while choosing (>= 2)
+    holdout_every: int = 8
+    #: give the held-out views back to the optimiser once the budget is chosen
+    return_holdout: bool = True
+    #: at the end, prune primitives with opacity below this
+    prune_opacity: float = 1.0 / 255.0
+    #: ... or whose blending weight summed over all train-view pixels is below this
+    prune_weight: float = 1.0 / 255.0
+
+
+def split_holdout(train: list[Camera], every: int) -> tuple[list[Camera], list[Camera]]:
+    """(optimiser views, held-out views): every ``every``-th train view is held out, at least one,
+    and at least one view stays with the optimiser."""
+    if len(train) < 2:
+        raise ValueError("--budget auto needs at least 2 train views (one is held out)")
+    every = max(2, int(every))
+    held = {i for i in range(len(train)) if i % every == every // 2} or {len(train) // 2}
+    return [c for i, c in enumerate(train) if i not in held], [c for i, c in enumerate(train) if i in held]
+
+
+@torch.no_grad()
+def render_psnr(model, cams: list[Camera], background, backend: str = "auto") -> float | None:
+    """Mean PSNR (dB) of ``model`` over ``cams`` (renders clamped to [0, 1]); None without views."""
+    if not cams:
+        return None
+    bg = torch.as_tensor(background, dtype=torch.float32)
+    vals = []
+    for cam in cams:
+        img = model.render(cam, bg, backend=backend).image
+        vals.append(float(psnr(img.cpu(), cam.image_float())))
+    return sum(vals) / len(vals)
+
+
+class _WeightProbe(ColorModel):
+    """Stands in for the colour model: every visible primitive's colour is a leaf of ones, so
+    d(sum of the image)/d(colour) is the primitive's blending weight summed over the pixels."""
+
+    name = "weight-probe"
+
+    def __init__(self):
+        self.leaf: torch.Tensor | None = None
+
+    def colors(self, prims, dirs, degree):
+        self.leaf = torch.ones(dirs.shape[0], 3, device=dirs.device, requires_grad=True)
+        return self.leaf
+
+
+def blending_weights(model, cams: list[Camera], backend: str = "auto") -> torch.Tensor:
+    """[N] sum over views and pixels of each primitive's blending weight T * alpha.
+
+    Computed through the renderer itself (the colour model swapped for a probe), so it matches
+    what ``model.render`` composites, whatever the backend and kernel.
+    """
+    total = torch.zeros(model.num_primitives)
+    probe, color = _WeightProbe(), model.color
+    model.color = probe
+    try:
+        for cam in cams:
+            bg = torch.zeros(3)
+            out = model.render(cam, bg, backend=backend)
+            if out.visible.numel() == 0:
+                continue
+            (g,) = torch.autograd.grad(out.image.sum(), probe.leaf)
+            total[out.visible.cpu()] += g.detach().cpu().sum(1) / 3.0
+    finally:
+        model.color = color
+    return total
+
+
+@torch.no_grad()
+def keep_rows(trainer: Trainer, keep: torch.Tensor) -> None:
+    """Keep only the primitives ``keep`` ([N] bool), Adam moments included."""
+    opt = trainer.opt
+    idx = torch.nonzero(keep.to(trainer.device)).flatten()
+    for g in opt.opt.param_groups:
+        old = g["params"][0]
+        new = nn.Parameter(old.data[idx].clone())
+        st = opt.opt.state.pop(old, None)
+        if st:
+            for key in ("exp_avg", "exp_avg_sq"):
+                st[key] = st[key][idx].clone()
+            opt.opt.state[new] = st
+        g["params"][0] = new
+        trainer.model.prims[g["name"]] = new
+
+
+class AutoBudget:
+    """Drives a :class:`Trainer` through the budget stages; its state rides in the checkpoint."""
+
+    def __init__(self, cfg: AutoBudgetConfig, base_budget: int, refine_stop: float = 25 / 30):
+        self.cfg = cfg
+        start = max(1, int(base_budget * cfg.start_fraction))
+        budgets = [start]
+        while budgets[-1] * 2 <= base_budget * cfg.max_factor:
+            budgets.append(budgets[-1] * 2)
+        # every stage must end while MCMC still grows the model (progress < refine_stop)
+        max_stages = max(1, int(refine_stop / cfg.stage_share + 1e-9))
+        self.budgets = budgets[:max_stages]
+        self.stages: list[dict] = []
+        self.chosen: int | None = None
+        self.reason = ""
+        self.snapshot: dict | None = None  # trainer state at the end of the last kept stage
+        self.holdout_returned = False
+        self.prune_report: dict | None = None
+        self.refine_every_used: int | None = None
+
+    @property
+    def start_budget(self) -> int:
+        return self.budgets[0]
+
+    def state_dict(self) -> dict:
+        return {"stages": list(self.stages), "chosen": self.chosen, "reason": self.reason,
+                "refine_every_used": self.refine_every_used,
+                "snapshot": self.snapshot, "holdout_returned": self.holdout_returned,
+                "prune_report": self.prune_report}
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.stages = list(sd["stages"])
+        self.chosen = sd["chosen"]
+        self.reason = sd.get("reason", "")
+        self.snapshot = sd.get("snapshot")
+        self.holdout_returned = sd.get("holdout_returned", False)
+        self.prune_report = sd.get("prune_report")
+        self.refine_every_used = sd.get("refine_every_used")
+
+    def return_holdout(self, trainer: Trainer, holdout: list[Camera]) -> None:
+        """Hand the held-out views to the optimiser (once the budget is chosen)."""
+        trainer.scene.train.extend(holdout)
+        trainer.targets.extend(c.image_float(trainer.device) for c in holdout)
+        self.holdout_returned = True
+
+    def run(
+        self,
+        trainer: Trainer,
+        holdout: list[Camera],
+        on_step: Callable[[StepInfo], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        on_checkpoint: Callable[[Trainer], None] | None = None,
+        checkpoint_every: int = 1000,
+    ) -> None:
+        """Choose the budget, train the rest of the run at it, prune. Returns early (state kept
+        for ``--resume``) when ``should_stop`` says so."""
+        backend = trainer.cfg.backend
+        bg = trainer.background.cpu()
+        stopped = lambda: bool(should_stop and should_stop())  # noqa: E731
+        mcmc = trainer.strategy.cfg
+        refine_every = mcmc.refine_every
+        if self.chosen is None:
+            mcmc.refine_every = self.refine_every_used = self.selection_refine_every(trainer)
+        while self.chosen is None:
+            s = len(self.stages)
+            budget = self.budgets[s]
+            trainer.strategy.cfg.cap_max = budget
+            end = (s + 1) * self.cfg.stage_share
+            trainer.run(on_step, lambda: trainer.progress() >= end - 1e-12 or stopped(),
+                        on_checkpoint, checkpoint_every)
+            if stopped():
+                return
+            value = render_psnr(trainer.model, holdout, bg, backend)
+            num = trainer.model.num_primitives
+            prev = self.stages[-1] if self.stages else None
+            gain = None if prev is None else value - prev["holdout_psnr"]
+            self.stages.append({"budget": budget, "num_primitives": num,
+                                "iteration": trainer.it, "holdout_psnr": value, "gain_db": gain})
+            # a doubling that MCMC could not carry out (stage shorter than the growth needs, or
+            # past the refine window) says nothing about the budget: stop there
+            if prev is not None and num < min(0.9 * budget, 1.5 * prev["num_primitives"]):
+                self.chosen = self.budgets[s - 1]
+                self.reason = (f"the model did not grow in the {budget} stage ({prev['num_primitives']} -> "
+                               f"{num} primitives: stage too short for refine_every, or past "
+                               f"refine_stop); back to the {self.chosen} model")
+                self._restore(trainer)
+            elif gain is not None and not (gain > self.cfg.threshold_db):  # NaN counts as no gain
+                self.chosen = self.budgets[s - 1]
+                self.reason = (f"doubling {self.budgets[s - 1]} -> {budget} gained {gain:.3f} dB "
+                               f"<= {self.cfg.threshold_db} dB; back to the {self.chosen} model")
+                self._restore(trainer)
+            elif trainer.done():
+                self.chosen = budget
+                self.reason = "the run ended before the gain fell below the threshold"
+            elif s == len(self.budgets) - 1:
+                self.chosen = budget
+                self.reason = "largest budget tried (max_factor / stage count)"
+            else:
+                self.snapshot = trainer.state_dict()
+        self.snapshot = None
+        mcmc.refine_every = refine_every
+        trainer.strategy.cfg.cap_max = self.chosen
+        if self.cfg.return_holdout and not self.holdout_returned:
+            self.return_holdout(trainer, holdout)
+        trainer.run(on_step, should_stop, on_checkpoint, checkpoint_every)
+        if stopped() and not trainer.done():
+            return
+        if self.prune_report is None:
+            self.prune_report = self.prune(trainer, holdout)
+
+    def selection_refine_every(self, trainer: Trainer) -> int:
+        """MCMC grows 5% per refine step, so a doubling takes 15 of them; while choosing, refine
+        often enough that a doubling fits in the first half of a stage (runs with a known
+        iteration count; e.g. 3000 iterations, 8 stages: every 12 instead of 100 iterations)."""
+        every = trainer.strategy.cfg.refine_every
+        if trainer.cfg.time_budget:
+            return every
+        steps = math.ceil(math.log(2.0) / math.log(trainer.strategy.cfg.growth))
+        stage_iters = self.cfg.stage_share * trainer.cfg.iters
+        return max(1, min(every, int(stage_iters / 2 / steps)))
+
+    def _restore(self, trainer: Trainer) -> None:
+        """Back to the end of the previous stage; the clock and the event log keep running."""
+        elapsed, events = trainer.elapsed, list(trainer.events)
+        trainer.load_state_dict(self.snapshot)
+        trainer.elapsed, trainer.events = elapsed, events
+        trainer._snapshot = self.snapshot  # a NaN rollback must not return to the discarded model
+
+    def prune(self, trainer: Trainer, holdout: list[Camera]) -> dict:
+        model, backend = trainer.model, trainer.cfg.backend
+        bg = trainer.background.cpu()
+        cams = trainer.scene.train if self.holdout_returned else trainer.scene.train + holdout
+        before = render_psnr(model, holdout, bg, backend)
+        weights = blending_weights(model, cams, backend)
+        with torch.no_grad():
+            low_opacity = model.opacities.detach().cpu() < self.cfg.prune_opacity
+        invisible = weights < self.cfg.prune_weight
+        keep = ~(low_opacity | invisible)
+        if int(keep.sum()) == 0:  # never prune a model to nothing
+            keep[torch.argmax(weights)] = True
+        n0 = model.num_primitives
+        if not bool(keep.all()):
+            keep_rows(trainer, keep)
+        after = render_psnr(model, holdout, bg, backend)
+        return {"num_primitives_before": n0, "num_primitives_after": model.num_primitives,
+                "pruned": n0 - model.num_primitives, "low_opacity": int(low_opacity.sum()),
+                "below_weight": int(invisible.sum()), "holdout_psnr_before": before,
+                "holdout_psnr_after": after}
+
+    def report(self, holdout: list[Camera]) -> dict:
+        return {
+            "chosen_budget": self.chosen,
+            "start_budget": self.start_budget,
+            "budgets_planned": self.budgets,
+            "threshold_db": self.cfg.threshold_db,
+            "stage_share": self.cfg.stage_share,
+            "refine_every_while_choosing": self.refine_every_used,
+            "holdout_views": [c.name for c in holdout],
+            "holdout_returned_to_training": self.holdout_returned,
+            "stages": self.stages,
+            "stopped_because": self.reason,
+            "prune": self.prune_report,
+            "settings": {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
+                         for k, v in vars(self.cfg).items()},
+        }

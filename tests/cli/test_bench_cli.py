@@ -1,0 +1,59 @@
+"""`splatk bench` on the command line: runs, results, table, resume, stability, method flags."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import pytest
+from click.testing import CliRunner
+
+from splatk.data.synthetic import make_demo_scene
+from splatk_cli.bench import build_methods
+from splatk_cli.main import cli
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_demo_scene(tmp_path_factory.mktemp("bench_cli") / "demo", num_views=8, size=32)
+
+
+def _bench(*args):
+    res = CliRunner().invoke(cli, ["bench", *map(str, args)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    return res
+
+
+def test_bench_flags_run_resume_and_chart(scene, tmp_path):
+    args = (scene, "--out", tmp_path, "--preset", "bench_quick", "--kernel", "gaussian", "--budget", "150",
+            "--iters", "30", "--threads", "1")
+    res = _bench(*args)
+    result = json.loads((tmp_path / "results" / "demo__gaussian-sh-b150.json").read_text())
+    assert result["status"] == "ok" and result["num_primitives"] <= 150 and result["threads"] == 1
+    assert result["config"]["train"]["iters"] == 30  # the flag beat the preset's 60
+    assert "gaussian-sh-b150" in res.stdout and "threads per run: 1" in res.stdout and "fit" in res.stderr
+    assert cv2.imread(str(tmp_path / "charts" / "psnr_vs_train_seconds.png")) is not None
+    again = _bench(*args)
+    assert "reuse" in again.stderr and "      fit" not in again.stderr
+
+
+def test_bench_stability_cli(scene, tmp_path):
+    res = _bench(scene, "--out", tmp_path, "--preset", "bench_quick", "--stability", "--iters", "20")
+    matrix = json.loads((tmp_path / "stability" / "matrix_demo.json").read_text())
+    assert {(c["row"], c["col"]) for c in matrix["cells"]} == {
+        ("gaussian", "random-init"), ("gaussian", "lr-x10"), ("learned-k2", "random-init"), ("learned-k2", "lr-x10")}
+    assert all(c["status"] == "ok" and c["initial_psnr"] is not None for c in matrix["cells"])
+    assert (tmp_path / "charts" / "stability_demo.png").is_file()
+    assert "lr-x10" in res.stdout
+
+
+def test_method_flags_make_a_grid():
+    ms = build_methods(("gaussian", "learned"), (2, 8), "none", ("sh",), (), ("1MB", "4MB"))
+    assert len(ms) == 6
+    assert {"kernel": "learned", "k": 8, "weights": "none", "color": "sh", "budget_bytes": "4MB"} in ms
+    assert {"kernel": "gaussian", "color": "sh", "budget_bytes": "1MB"} in ms
+
+
+def test_bad_scene_is_one_line_error(tmp_path):
+    res = CliRunner().invoke(cli, ["bench", str(tmp_path / "nope"), "--out", str(tmp_path / "o"),
+                                   "--kernel", "gaussian"])
+    assert res.exit_code == 2 and "does not exist" in res.stderr

@@ -1,0 +1,107 @@
+"""`--budget auto`: stages on held-out train views, stop rule, prune, report in fit.json."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from splatk.data import load_scene
+from splatk.data.synthetic import make_demo_scene
+from splatk.stages.autobudget import AutoBudget, AutoBudgetConfig, blending_weights, split_holdout
+from splatk.stages.fit import FitConfig, build_model, run_fit
+from splatk.train.trainer import TrainConfig, Trainer
+from splatk_cli.fit import build_fit_config
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_demo_scene(tmp_path_factory.mktemp("auto") / "demo", num_views=8, size=32)
+
+
+def _cfg(threshold: float) -> FitConfig:
+    # base 400 -> stages 50, 100, 200, 400; 20 iterations each, growing 5% per iteration
+    # (refine_every 1) so every doubling can complete inside its stage
+    auto = AutoBudgetConfig(start_fraction=0.125, max_factor=1.0, threshold_db=threshold, stage_share=0.2)
+    train = TrainConfig(iters=100, budget=400, init="random", backend="torch", refine_every=1, refine_start=0)
+    return FitConfig(sh_degree=1, backend="torch", threads=1, auto_budget=auto, train=train)
+
+
+def test_stops_growing_when_a_doubling_gains_too_little(scene, tmp_path):
+    run = run_fit(scene, tmp_path / "run", _cfg(threshold=100.0))
+    rep = json.loads((run / "fit.json").read_text())["auto_budget"]
+    assert rep["budgets_planned"] == [50, 100, 200, 400]
+    assert [s["budget"] for s in rep["stages"]] == [50, 100]
+    assert rep["stages"][1]["num_primitives"] == 100  # the doubling did happen...
+    assert rep["chosen_budget"] == 50  # ...but gained < 100 dB, so back to the 50 model
+    assert "gained" in rep["stopped_because"]
+    assert rep["holdout_views"] and rep["holdout_returned_to_training"]
+    assert rep["prune"]["num_primitives_before"] <= 50
+    summary = json.loads((run / "fit.json").read_text())
+    assert summary["num_primitives"] == rep["prune"]["num_primitives_after"] <= 50
+    assert summary["iterations"] == 100
+    assert summary["train_views"] == 7  # the held-out view went back to the optimiser
+
+
+def test_keeps_doubling_while_it_pays(scene, tmp_path):
+    run = run_fit(scene, tmp_path / "run", _cfg(threshold=-100.0))
+    rep = json.loads((run / "fit.json").read_text())["auto_budget"]
+    assert rep["chosen_budget"] == 400
+    assert [s["budget"] for s in rep["stages"]] == [50, 100, 200, 400]
+    assert all(s["gain_db"] is not None for s in rep["stages"][1:])
+    assert json.loads((run / "fit.json").read_text())["num_primitives"] <= 400
+
+
+def test_prune_drops_invisible_and_transparent_primitives(scene):
+    sc = load_scene(scene)
+    cfg = FitConfig(sh_degree=1, backend="torch", train=TrainConfig(budget=60, init="random", backend="torch"))
+    tr = Trainer(sc, build_model(sc, cfg), cfg.train)
+    tr.run(should_stop=lambda: tr.it >= 3)  # Adam moments exist
+    n = tr.model.num_primitives
+    rows = {k: v.data[:6].clone() for k, v in tr.model.prims.items()}
+    rows["means"][:3] = 1e4  # far outside every view
+    rows["opacity_logits"][3:] = -20.0  # transparent
+    tr.opt.append_rows(rows)
+    w = blending_weights(tr.model, sc.train, backend="torch")
+    assert (w[n:n + 3] == 0).all() and (w[:n] > 0).any()
+    ab = AutoBudget(AutoBudgetConfig(), 60)
+    rep = ab.prune(tr, sc.train[:1])
+    assert rep["pruned"] >= 6 and tr.model.num_primitives <= n
+    assert rep["low_opacity"] >= 3 and rep["below_weight"] >= 3
+    assert not (tr.model.prims["means"] > 1e3).any()
+    tr.cfg.iters = tr.it + 2
+    tr.run()  # the optimiser still lines up with the pruned tensors
+
+
+def test_holdout_never_takes_all_views():
+    cams = list(range(7))
+    train, held = split_holdout(cams, 8)
+    assert held and train and set(train) | set(held) == set(cams) and not set(train) & set(held)
+
+
+def test_cli_budget_auto_parses():
+    cfg = build_fit_config({"budget": "auto"})
+    assert cfg.auto_budget is not None and cfg.train.budget == TrainConfig().budget
+    assert build_fit_config({"budget": "5000"}).auto_budget is None
+    ref = build_fit_config({"budget": "auto:8000"})
+    assert ref.auto_budget is not None and ref.train.budget == 8000
+
+
+def test_resume_mid_selection_continues_the_stages(scene, tmp_path):
+    cfg = _cfg(threshold=-100.0)
+    # a run stopped inside the second stage (Ctrl-C / SIGTERM path), then resumed
+    part = tmp_path / "part"
+    calls = {"n": 0}
+
+    def stop():
+        calls["n"] += 1
+        return calls["n"] >= 30
+
+    run_fit(scene, part, cfg, should_stop=stop)
+    first = json.loads((part / "fit.json").read_text())
+    assert first["iterations"] < 100 and first["auto_budget"]["chosen_budget"] is None
+    run_fit(scene, part, cfg, resume=True)
+    rep = json.loads((part / "fit.json").read_text())
+    assert rep["iterations"] == 100
+    assert [s["budget"] for s in rep["auto_budget"]["stages"]] == [50, 100, 200, 400]
+    assert rep["auto_budget"]["chosen_budget"] == 400 and rep["auto_budget"]["prune"] is not None

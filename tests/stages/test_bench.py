@@ -1,0 +1,165 @@
+"""`splatk bench` engine: results per run, resume without retraining, charts, Pareto front,
+byte budgets, the stability matrix and its flags (tiny generated scene, short runs)."""
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import pytest
+
+from splatk.data.synthetic import make_demo_scene
+from splatk.stages import bench
+from splatk.stages.bench import (
+    BenchConfig,
+    bytes_per_primitive,
+    classify,
+    fit_config_for,
+    method_id,
+    run_bench,
+    run_stability,
+)
+from splatk.stages.bench_charts import pareto_front
+from splatk.stages.fit import run_fit
+
+BASE = {"iters": 40, "budget": 200, "init": "random", "sh_degree": 1, "backend": "torch", "threads": 1}
+METHODS = [{"kernel": "gaussian"}, {"kernel": "learned", "k": 2}]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_demo_scene(tmp_path_factory.mktemp("bench") / "demo", num_views=8, size=32)
+
+
+@pytest.fixture(scope="module")
+def grid(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_out")
+    cfg = BenchConfig(methods=METHODS, defaults=BASE, metrics=("psnr", "ssim"))
+    return out, cfg, run_bench([scene], cfg, out)
+
+
+def _spy_run_fit(monkeypatch):
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs.get("resume", False))
+        return run_fit(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "run_fit", spy)
+    return calls
+
+
+def test_one_result_json_per_run(grid):
+    out, cfg, res = grid
+    files = sorted((out / "results").glob("*.json"))
+    assert [f.name for f in files] == ["demo__gaussian-sh.json", "demo__learned-k2-sh.json"]
+    for f in files:
+        r = json.loads(f.read_text())
+        assert r["status"] == "ok"
+        for key in ("psnr", "ssim", "train_seconds", "render_ms", "footprint_mb", "num_primitives", "config"):
+            assert r[key] is not None, key
+        assert "lpips" in r and r["threads"] == 1
+        assert r["config"]["train"]["iters"] == 40 and r["num_primitives"] <= 200
+        assert (out / "runs" / "demo" / r["method"] / "model.pt").is_file()
+    assert [r["method"] for r in res.rows] == ["gaussian-sh", "learned-k2-sh"]
+
+
+def test_second_call_skips_finished_runs(grid, scene, monkeypatch):
+    out, cfg, _ = grid
+    calls = _spy_run_fit(monkeypatch)
+    before = {p: p.stat().st_mtime_ns for p in (out / "results").glob("*.json")}
+    model_before = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("model.pt")}
+    res = run_bench([scene], cfg, out)
+    assert calls == []
+    assert {p: p.stat().st_mtime_ns for p in (out / "results").glob("*.json")} == before
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("model.pt")} == model_before
+    assert len(res.rows) == 2
+
+
+def test_changed_settings_are_not_mistaken_for_finished(grid, scene):
+    out, cfg, _ = grid
+    other = BenchConfig(methods=METHODS[:1], defaults={**BASE, "iters": 41}, metrics=("psnr",))
+    with pytest.raises(Exception, match="other settings"):
+        run_bench([scene], other, out)
+
+
+def test_charts_exist_and_decode(grid):
+    out, _, res = grid
+    for stem in ("psnr_vs_render_ms", "psnr_vs_train_seconds", "psnr_vs_footprint_mb"):
+        img = cv2.imread(str(out / "charts" / f"{stem}.png"))
+        assert img is not None and img.shape[0] > 100 and img.shape[1] > 100
+        assert (out / "charts" / f"{stem}.svg").read_text().lstrip().startswith("<?xml")
+    assert len(res.charts) == 6
+
+
+def test_partial_run_resumes_from_checkpoint(scene, tmp_path, monkeypatch):
+    cfg = BenchConfig(methods=[{"kernel": "beta"}], defaults=BASE, metrics=("psnr",))
+    fit_cfg, _ = fit_config_for(cfg.methods[0], cfg.defaults)
+    run = tmp_path / "runs" / "demo" / method_id(cfg.methods[0])
+    run_fit(scene, run, fit_cfg, should_stop=lambda: True)  # stops after one iteration
+    assert json.loads((run / "fit.json").read_text())["iterations"] == 1
+    calls = _spy_run_fit(monkeypatch)
+    res = run_bench([scene], cfg, tmp_path)
+    assert calls == [True]  # resumed, not started over
+    assert res.rows[0]["iterations"] == 40
+
+
+def test_pareto_front_on_hand_made_points():
+    # (cost, psnr): lower cost and higher PSNR are better
+    pts = [(1, 20), (2, 25), (3, 24), (4, 30), (5, 30), (0.5, 10), (2, 25), (None, 40), (6, float("nan"))]
+    flags = pareto_front([p[0] for p in pts], [p[1] for p in pts])
+    assert flags == [True, True, False, True, False, True, True, False, False]
+    assert pareto_front([], []) == []
+    assert pareto_front([1.0], [1.0]) == [True]
+
+
+def test_budget_bytes_from_floats_per_primitive():
+    gauss, notes = fit_config_for({"kernel": "gaussian", "budget_bytes": "1MB"}, {"sh_degree": 3})
+    learned, lnotes = fit_config_for({"kernel": "learned", "k": 2, "budget_bytes": "1MB"}, {"sh_degree": 3})
+    g_bytes, g_nets = bytes_per_primitive(gauss)
+    l_bytes, l_nets = bytes_per_primitive(learned)
+    assert g_bytes == 4 * (3 + 3 + 4 + 1 + 16 * 3) and g_nets == 0
+    assert l_bytes == g_bytes + 4 * 5  # the 5-float latent z3d
+    assert l_nets > 0
+    assert gauss.train.budget == 2**20 // g_bytes
+    assert learned.train.budget == (2**20 - l_nets) // l_bytes
+    assert notes["budget"]["bytes_per_primitive"] == g_bytes and lnotes["budget"]["network_bytes"] == l_nets
+    assert method_id({"kernel": "learned", "k": 2, "budget_bytes": "1MB"}) == "learned-k2-sh-B1M"
+
+
+def test_short_runs_scale_schedules():
+    cfg, notes = fit_config_for({"kernel": "learned", "k": 4}, {"iters": 3000})
+    assert cfg.train.refine_start == 50 and cfg.train.refine_every == 10 and cfg.train.sh_degree_interval == 100
+    assert cfg.kernel_options["freeze_iters"] == 200
+    full, _ = fit_config_for({"kernel": "learned"}, {"iters": 3000}, scale_schedules=False)
+    assert full.train.refine_start == 500 and "freeze_iters" not in full.kernel_options
+
+
+def test_classify_flags_runs_that_end_below_their_start():
+    assert classify(12.0, 11.5, 0) == {"below_initial": True, "diverged": True, "nan": False}
+    assert classify(12.0, 20.0, 2) == {"below_initial": False, "diverged": False, "nan": True}
+    assert classify(12.0, float("nan"), 1)["diverged"]
+    assert classify(None, 20.0, 0)["diverged"] is False
+
+
+def test_stability_matrix_2x2(scene, tmp_path):
+    kernels = {"gaussian": {"kernel": "gaussian"}, "learned-k2": {"kernel": "learned", "k": 2}}
+    # the demo scene has no SfM points, so the sfm-init column is "not applicable";
+    # lr x 1e5 makes the trainer roll back NaNs and the run end below its start
+    conditions = {"sfm-init": {"init": "sfm"}, "lr-x1e5": {"lr_scale": 1e5}}
+    cfg = BenchConfig(defaults={**BASE, "iters": 30}, metrics=("psnr",))
+    res = run_stability([scene], cfg, tmp_path, kernels=kernels, conditions=conditions)
+    matrix = json.loads((tmp_path / "stability" / "matrix_demo.json").read_text())
+    cells = {(c["row"], c["col"]): c for c in matrix["cells"]}
+    assert len(cells) == 4 and len(res.rows) == 4
+    assert all(cells[(k, "sfm-init")]["status"] == "not_applicable" for k in kernels)
+    for k in kernels:
+        c = cells[(k, "lr-x1e5")]
+        assert c["status"] == "ok" and math.isfinite(c["psnr"])  # training did not die
+        assert c["nan_rollbacks"] >= 1 and c["nan"]
+        assert c["below_initial"] and c["diverged"]
+        assert c["initial_psnr"] > c["psnr"]
+    assert len(list((tmp_path / "stability" / "results").glob("*.json"))) == 4
+    img = cv2.imread(str(tmp_path / "charts" / "stability_demo.png"))
+    assert img is not None and img.shape[0] > 100
+    assert (tmp_path / "charts" / "stability_demo.svg").is_file()
