@@ -1,7 +1,6 @@
 """Shared CLI plumbing: presets, value parsing, error reporting. No engine logic here."""
 from __future__ import annotations
 
-import os
 import re
 import sys
 from pathlib import Path

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import signal
-from dataclasses import fields
 from pathlib import Path
 
 import click
@@ -10,13 +9,10 @@ from rich.console import Console
 
 from splatk.stages.autobudget import AutoBudgetConfig
 from splatk.stages.fit import FitConfig, run_fit
-from splatk.train.trainer import TrainConfig
 
 from .common import load_preset, parse_duration, resolve_options
 from .progress import training_progress
 
-# flag name -> (where it goes in FitConfig, converter)
-_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)}
 
 
 @click.command("fit")

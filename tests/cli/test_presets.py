@@ -2,7 +2,6 @@
 from pathlib import Path
 
 import pytest
-import yaml
 
 from splatk_cli.common import load_preset, parse_duration
 from splatk_cli.fit import build_fit_config

@@ -1,21 +1,10 @@
 """A short fit with the learned kernel improves held-out views (Trainer, torch backend)."""
-import pytest
 import torch
 
 from splatk.metrics import psnr
 from splatk.models.volumetric import SplatModel
 from splatk.train.trainer import TrainConfig, Trainer
 from tests.scenes import synthetic_scene
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny tensors: with 2 threads on a busy 2-core machine, OpenMP's hand-offs made these
-    tests up to 8x slower (24 s vs 3 s for the fit); the tensors are too small to need two."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
 
 
 def test_short_learned_fit_raises_test_psnr():

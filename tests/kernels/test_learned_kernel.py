@@ -14,16 +14,6 @@ from splatk.train.trainer import TrainConfig, Trainer
 from tests.scenes import orbit_cameras, random_model, synthetic_scene
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny tensors: with 2 threads on a busy 2-core machine, OpenMP's hand-offs made these
-    tests up to 8x slower (24 s vs 3 s for the fit); the tensors are too small to need two."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 def view_of(model, cam):
     proj = project_ellipsoids(model.prims["means"], model.prims["quats"], model.scales,
                               cam.world_to_cam, cam.K, cam.width, cam.height,

@@ -11,15 +11,6 @@ from splatk.kernels import ViewContext
 from splatk.models.volumetric import SplatModel
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny tensors: with 2 threads on a busy 2-core machine, OpenMP's hand-offs made these
-    tests up to 8x slower (24 s vs 3 s for the fit); the tensors are too small to need two."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
 # float32 render of one splat: alpha = o * lerp(table, r); the composited alpha 1 - exp(log1p(-a))
 # goes through float64 and back, so a few ulps of 1.0 (~1e-7); 1e-5 leaves room for r2's rounding.
 TOL = {torch.float32: 1e-5}

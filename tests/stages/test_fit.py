@@ -1,13 +1,11 @@
 """The fit / eval / export stages end to end on generated scenes (no ../shared needed)."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scenes import synthetic_scene  # noqa: E402
@@ -47,8 +45,18 @@ def test_short_fit_raises_test_psnr(kernel):
 def test_training_state_round_trip():
     """Stopping, saving state and continuing gives the same parameters as not stopping.
 
-    Not bit-exact: torch's threaded CPU reductions differ by ~1e-6 between two identical runs,
-    so the tolerance is 1e-4 (measured: max difference 2.4e-6 after 60 iterations)."""
+    Run on one thread: torch's threaded CPU reductions differ by ~1e-6 between identical runs,
+    and MCMC's multinomial relocation can turn that into a different sample, so two threads make
+    this test flaky without saying anything about the state round trip."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _check_round_trip()
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _check_round_trip():
     scene = synthetic_scene(num_views=8)
 
     def fresh():

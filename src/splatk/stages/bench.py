@@ -20,7 +20,6 @@ A method is a dict of fit settings (see :func:`fit_config_for`)::
 """
 from __future__ import annotations
 
-import copy
 import hashlib
 import itertools
 import json

@@ -12,8 +12,6 @@ Run folder layout::
 from __future__ import annotations
 
 import json
-import math
-import os
 import shutil
 import tempfile
 import time
