@@ -44,7 +44,7 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 @click.option("--time-budget", help="Wall-clock training budget of every run, e.g. 90s, 5m.")
 @click.option("--downscale", type=float, help="Image downscale factor.")
 @click.option("--threads", type=int, help="CPU threads per run (0: all). Recorded in every result.")
-@click.option("--init", type=click.Choice(["sfm", "random"]), help="Initial primitives.")
+@click.option("--init", type=click.Choice(["auto", "sfm", "random"]), help="Initial primitives.")
 @click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend.")
 @click.option("--seed", type=int, help="Random seed.")
 @click.option("--sh-degree", type=int, help="Maximum SH degree.")

@@ -32,7 +32,8 @@ from .progress import training_progress
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
 @click.option("--downscale", type=float, help="Image downscale factor. [default: 1]")
-@click.option("--init", "init", type=click.Choice(["sfm", "random"]), help="Initial primitives. [default: sfm]")
+@click.option("--init", "init", type=click.Choice(["auto", "sfm", "random"]),
+              help="Initial primitives: SfM points, random, or auto (SfM points when the scene has them). [default: auto]")
 @click.option("--seed", type=int, help="Random seed. [default: 0]")
 @click.option("--threads", type=int, help="CPU threads (0: all). [default: 0]")
 @click.option("--checkpoint-every", type=int, help="Checkpoint interval in iterations. [default: 1000]")

@@ -16,9 +16,11 @@ class ColorModel:
     def learning_rates(self) -> dict[str, float]:
         raise NotImplementedError
 
-    def colors(self, prims: dict[str, torch.Tensor], dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    def colors(self, prims: dict[str, torch.Tensor], dirs: torch.Tensor, degree: int,
+               fused: bool = False) -> torch.Tensor:
         """[M, 3] RGB of the visible primitives seen along ``dirs`` [M, 3] (camera -> mean).
-        ``degree`` is the active SH degree (raised during training)."""
+        ``degree`` is the active SH degree (raised during training); ``fused``: a native fused
+        implementation may be used (see ``backends.fused_cpu``)."""
         raise NotImplementedError
 
     def base_rgb_params(self, prims) -> dict[str, torch.Tensor]:

@@ -25,8 +25,12 @@ class SHColor(ColorModel):
     def learning_rates(self):
         return {"sh0": 0.0025, "sh_rest": 0.0025 / 20}  # 3DGS-MCMC
 
-    def colors(self, prims, dirs, degree):
+    def colors(self, prims, dirs, degree, fused=False):
         degree = min(degree, self.sh_degree)
+        if fused:
+            from ..backends.fused_cpu import eval_sh_fused
+
+            return eval_sh_fused(prims["sh0"], prims["sh_rest"], dirs, degree)
         coeffs = torch.cat([prims["sh0"], prims["sh_rest"]], dim=1)
         return eval_sh(coeffs, dirs, degree)
 

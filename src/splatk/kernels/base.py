@@ -14,15 +14,17 @@ from ..backends import Profile
 class ViewContext:
     """Camera-space attributes of the primitives visible in one view (paper Eq. 5 inputs).
 
+    All None for kernels with ``needs_view = False`` (render skips computing them).
+
     Attributes:
         means_cam: [M, 3] camera-space centres.
         scales: [M, 3] activated scales.
         rotmats_cam: [M, 3, 3] primitive rotations in camera space.
     """
 
-    means_cam: torch.Tensor
-    scales: torch.Tensor
-    rotmats_cam: torch.Tensor
+    means_cam: torch.Tensor | None
+    scales: torch.Tensor | None
+    rotmats_cam: torch.Tensor | None
 
 
 class Kernel(nn.Module):
@@ -36,6 +38,9 @@ class Kernel(nn.Module):
     name: str = "base"
     #: support of the profile in units of the projected sigma (bounding ellipse at r = 1)
     support_sigmas: float = 3.0
+    #: whether :meth:`profile` reads the :class:`ViewContext` (the fused projection skips
+    #: computing camera-space centres and rotations for kernels that do not)
+    needs_view: bool = False
 
     def init_primitive_params(self, n: int, device: torch.device) -> dict[str, torch.Tensor]:
         """Raw (pre-activation) per-primitive parameters for ``n`` new primitives."""

@@ -151,6 +151,7 @@ class LearnedKernel(Kernel):
 
     name = "learned"
     support_sigmas = 1.0
+    needs_view = True
 
     def __init__(
         self,

@@ -6,9 +6,10 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from ..backends import RasterOutput, rasterize
+from ..backends import RasterOutput, rasterize, resolve_backend
 from ..colors import ColorModel, make_color_model
-from ..functional.projection import project_ellipsoids
+from ..functional.projection import project_ellipsoids, quats_to_rotmats
+from ..backends.fused_cpu import project_ellipsoids_fused, use_fused
 from ..kernels import Kernel, ViewContext, make_kernel
 
 #: geometric per-primitive parameters every volumetric model has (raw, pre-activation)
@@ -96,24 +97,44 @@ class SplatModel(nn.Module):
         sh_degree: int = 3,
         backend: str = "auto",
     ) -> "RenderResult":
-        """Render one camera. Differentiable in every parameter."""
+        """Render one camera. Differentiable in every parameter.
+
+        With the ``cpu`` backend, projection and SH colour use the fused native ops as well
+        (``backends.fused_cpu``, same values); ``torch`` keeps everything in torch."""
         dev = self.prims["means"].device
+        backend = resolve_backend(backend, dev)
+        fused = use_fused(backend, dev)
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
         scales = self.scales
-        proj = project_ellipsoids(
-            self.prims["means"], self.prims["quats"], scales, viewmat, K,
-            camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
-        )
-        idx = torch.nonzero(proj.visible).flatten()
-        vis = {k: v[idx] for k, v in self.prims.items()}
+        if fused:
+            means2d, conics, depths, visible = project_ellipsoids_fused(
+                self.prims["means"], self.prims["quats"], scales, viewmat, K,
+                camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
+            )
+        else:
+            proj = project_ellipsoids(
+                self.prims["means"], self.prims["quats"], scales, viewmat, K,
+                camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
+            )
+            means2d, conics, depths, visible = proj.means2d, proj.conics, proj.depths, proj.visible
+        idx = torch.nonzero(visible).flatten()
+        # index_select: its backward is index_add_, several times faster on the CPU than the
+        # accumulating index_put_ that v[idx] records
+        vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree)
-        view = ViewContext(proj.means_cam[idx], scales[idx], proj.rotmats_cam[idx])
+        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, fused=fused)
+        if not self.kernel.needs_view:
+            view = ViewContext(None, None, None)
+        elif fused:  # the fused projection keeps these to itself: recompute the visible rows
+            means_cam = vis["means"] @ viewmat[:3, :3].T + viewmat[:3, 3]
+            view = ViewContext(means_cam, scales[idx], viewmat[:3, :3] @ quats_to_rotmats(vis["quats"]))
+        else:
+            view = ViewContext(proj.means_cam[idx], scales[idx], proj.rotmats_cam[idx])
         profile = self.kernel.profile(vis, view)
         out: RasterOutput = rasterize(
-            proj.means2d[idx], proj.conics[idx], torch.sigmoid(vis["opacity_logits"]), rgb,
-            proj.depths[idx].detach(), profile, camera.width, camera.height,
+            means2d.index_select(0, idx), conics.index_select(0, idx), torch.sigmoid(vis["opacity_logits"]), rgb,
+            depths.detach()[idx], profile, camera.width, camera.height,
             background=background.to(dev), backend=backend,
         )
         return RenderResult(out.colors, out.alphas, idx)

@@ -86,7 +86,7 @@ class _WeightProbe(ColorModel):
     def __init__(self):
         self.leaf: torch.Tensor | None = None
 
-    def colors(self, prims, dirs, degree):
+    def colors(self, prims, dirs, degree, fused=False):
         self.leaf = torch.ones(dirs.shape[0], 3, device=dirs.device, requires_grad=True)
         return self.leaf
 

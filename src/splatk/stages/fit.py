@@ -159,6 +159,8 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
 def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel:
     """Initial model; ``budget`` (default ``cfg.train.budget``) caps the initial points."""
     budget = cfg.train.budget if budget is None else budget
+    if cfg.train.init == "auto":  # recorded resolved, so config.yaml says what ran
+        cfg.train.init = "sfm" if scene.points.shape[0] > 0 else "random"
     pts, cols = initial_points(scene, cfg.train.init, budget, cfg.train.random_points,
                                cfg.train.seed)
     # Random points start 10x smaller than their neighbour spacing (3DGS-MCMC's init_scale 0.1):

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..backends import resolve_backend
+from ..backends.fused_cpu import use_fused
 from ..data.types import Scene
 from ..models.volumetric import SplatModel
 from .losses import photometric_loss, regularisers
@@ -34,7 +36,8 @@ class TrainConfig:
     #: wall-clock budget in seconds (None: none); schedules follow max(iteration, time) progress
     time_budget: float | None = None
     budget: int = 100_000
-    init: str = "sfm"
+    #: sfm | random | auto (sfm when the scene has SfM points, else random)
+    init: str = "auto"
     random_points: int = 100_000
     #: initial scale = init_scale x neighbour spacing (0: 0.1 for random init, 1 for SfM as DBS)
     init_scale: float = 0.0
@@ -93,6 +96,8 @@ class Trainer:
         )
         self._build_optimizers()
         self.targets = [c.image_float(self.device) for c in scene.train]
+        # the cpu backend also fuses the D-SSIM loss (backends.fused_cpu; same value)
+        self.fused = use_fused(resolve_backend(config.backend, self.device), self.device)
         self._snapshot = None
 
     # ---- optimisers and schedules ------------------------------------------------------
@@ -141,7 +146,7 @@ class Trainer:
         cam = self.scene.train[vi]
         target = self.targets[vi]
         out = self.model.render(cam, self.background, sh_degree=self.sh_degree(), backend=self.cfg.backend)
-        loss = photometric_loss(out.image, target, self.cfg.lambda_dssim)
+        loss = photometric_loss(out.image, target, self.cfg.lambda_dssim, fused=self.fused)
         loss = loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
         event = None
         if not torch.isfinite(loss):
@@ -171,9 +176,12 @@ class Trainer:
         )
 
     def _params_finite(self) -> bool:
-        return all(bool(torch.isfinite(p).all()) for p in self.model.prims.values()) and all(
-            bool(torch.isfinite(p).all()) for p in self.model.kernel.parameters()
-        )
+        # A sum is non-finite iff some element is (inf - inf gives NaN too), and one sum per
+        # tensor is far cheaper than a full isfinite mask (finite float32 parameters stay far
+        # below the overflow range).
+        sums = [p.detach().sum() for p in self.model.prims.values()]
+        sums += [p.detach().sum() for p in self.model.kernel.parameters()]
+        return bool(torch.isfinite(torch.stack(sums)).all()) if sums else True
 
     def _rollback(self, reason: str) -> str:
         """Never die of a NaN: restore the last good state, halve the step sizes, go on."""

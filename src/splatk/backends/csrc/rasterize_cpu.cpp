@@ -159,6 +159,9 @@ std::vector<at::Tensor> rasterize_backward(const std::vector<at::Tensor>& state,
 }
 
 }  // namespace
+
+void register_fused_ops(pybind11::module_& m);  // fused_ops.cpp
+
 }  // namespace splatk
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -180,4 +183,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("set_cpu_clock", &splatk::set_cpu_clock,
         "time phases with the calling thread's CPU clock instead of wall time");
   m.def("simd_width", &splatk::simd_width, "vector width the kernels were compiled for (bits)");
+  splatk::register_fused_ops(m);
 }

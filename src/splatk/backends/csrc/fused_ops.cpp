@@ -1,0 +1,655 @@
+// Fused native versions of the per-iteration torch ops around the rasteriser: the D-SSIM loss,
+// EWA projection and spherical-harmonics colour. In torch each is dozens of small ops and
+// autograd nodes; at 50k primitives and 400x400 pixels they cost 4x the rasteriser itself
+// (benchmarks/train_step.py). Each function here is the exact formula of its torch reference
+// (splatk/metrics/ssim.py, splatk/functional/projection.py, splatk/functional/sh.py) with a
+// hand-written backward; tests/backends/test_fused_ops.py checks both against those references.
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <omp.h>
+#include <torch/csrc/utils/pybind.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+namespace splatk {
+namespace {
+
+int nthreads(int64_t requested, int64_t work, int64_t min_work) {
+  if (work < min_work) return 1;
+  return requested > 0 ? int(requested) : omp_get_max_threads();
+}
+
+void check_cpu_float(const at::Tensor& t, at::ScalarType dt, const char* what) {
+  TORCH_CHECK(t.device().is_cpu() && t.is_contiguous() && t.scalar_type() == dt, what,
+              " must be a contiguous CPU tensor of the inputs' dtype");
+}
+
+// ------------------------------------------------------------------------------------------
+// SSIM with an R-radius separable Gaussian window, zero padding ("same"), C1 = 0.01^2,
+// C2 = 0.03^2, mean over every pixel and channel. Gradient with respect to x only (the render;
+// y is the photo).
+//
+// With m = G*x, e_xx = G*x^2, e_xy = G*xy (and the same for y):
+//   A1 = 2 m_x m_y + C1, A2 = 2 (e_xy - m_x m_y) + C2, B1 = m_x^2 + m_y^2 + C1,
+//   B2 = (e_xx - m_x^2) + (e_yy - m_y^2) + C2, S = A1 A2 / (B1 B2)
+// and dS/dm_x, dS/de_xx, dS/de_xy are the three per-pixel maps saved for the backward pass:
+//   dL/dx = G*(w dS/dm_x) + 2 x G*(w dS/de_xx) + y G*(w dS/de_xy)   (G symmetric, zero padding)
+// ------------------------------------------------------------------------------------------
+template <typename S>
+void blur_row_h(const S* in, S* out, S* pad, int W, const S* g, int R) {
+  // pad has W + 2R entries; the borders stay zero (zero padding)
+  std::copy(in, in + W, pad + R);
+  // tap-outer order: the inner loop runs over contiguous pixels and vectorises
+  std::fill(out, out + W, S(0));
+  for (int k = 0; k <= 2 * R; ++k) {
+    const S gk = g[k];
+    const S* src = pad + k;
+    for (int j = 0; j < W; ++j) out[j] += gk * src[j];
+  }
+}
+
+template <typename S>
+std::vector<at::Tensor> ssim_forward_t(const at::Tensor& x, const at::Tensor& y,
+                                       const at::Tensor& window, bool need_grad,
+                                       int64_t threads) {
+  const int C = int(x.size(0)), H = int(x.size(1)), W = int(x.size(2));
+  const int K = int(window.numel()), R = K / 2;
+  const S* g = window.data_ptr<S>();
+  const S* X = x.data_ptr<S>();
+  const S* Y = y.data_ptr<S>();
+  auto opt = x.options();
+  const int64_t plane = int64_t(H) * W;
+  at::Tensor hblur = at::empty({5, C, H, W}, opt);  // horizontally blurred x, y, xx, yy, xy
+  at::Tensor partials = need_grad ? at::empty({3, C, H, W}, opt) : at::empty({0}, opt);
+  S* HB = hblur.data_ptr<S>();
+  S* P = need_grad ? partials.data_ptr<S>() : nullptr;
+  const int64_t stride5 = int64_t(C) * plane;
+  const S C1 = S(0.01 * 0.01), C2 = S(0.03 * 0.03);
+  const int nt = nthreads(threads, int64_t(C) * H, 64);
+  double total = 0;
+  {
+    pybind11::gil_scoped_release nogil;
+#pragma omp parallel num_threads(nt) reduction(+ : total)
+    {
+      std::vector<S> pad(W + 2 * R, S(0)), prod(W);
+#pragma omp for schedule(static)
+      for (int64_t row = 0; row < int64_t(C) * H; ++row) {
+        const S* xr = X + row * W;
+        const S* yr = Y + row * W;
+        blur_row_h(xr, HB + 0 * stride5 + row * W, pad.data(), W, g, R);
+        blur_row_h(yr, HB + 1 * stride5 + row * W, pad.data(), W, g, R);
+        for (int j = 0; j < W; ++j) prod[j] = xr[j] * xr[j];
+        blur_row_h(prod.data(), HB + 2 * stride5 + row * W, pad.data(), W, g, R);
+        for (int j = 0; j < W; ++j) prod[j] = yr[j] * yr[j];
+        blur_row_h(prod.data(), HB + 3 * stride5 + row * W, pad.data(), W, g, R);
+        for (int j = 0; j < W; ++j) prod[j] = xr[j] * yr[j];
+        blur_row_h(prod.data(), HB + 4 * stride5 + row * W, pad.data(), W, g, R);
+      }
+      std::vector<S> m[5];
+      for (auto& v : m) v.assign(W, S(0));
+#pragma omp for schedule(static)
+      for (int64_t row = 0; row < int64_t(C) * H; ++row) {
+        const int c = int(row / H), i = int(row % H);
+        for (auto& v : m) std::fill(v.begin(), v.end(), S(0));
+        const int k0 = std::max(0, R - i), k1 = std::min(2 * R, R + H - 1 - i);
+        for (int k = k0; k <= k1; ++k) {
+          const int64_t src = int64_t(c) * plane + int64_t(i + k - R) * W;
+          const S gk = g[k];
+          for (int s = 0; s < 5; ++s) {
+            const S* h = HB + s * stride5 + src;
+            S* mv = m[s].data();
+            for (int j = 0; j < W; ++j) mv[j] += gk * h[j];
+          }
+        }
+        const int64_t o = row * W;
+        for (int j = 0; j < W; ++j) {
+          const S mx = m[0][j], my = m[1][j];
+          const S A1 = 2 * mx * my + C1, A2 = 2 * (m[4][j] - mx * my) + C2;
+          const S B1 = mx * mx + my * my + C1;
+          const S B2 = (m[2][j] - mx * mx) + (m[3][j] - my * my) + C2;
+          const S BB = B1 * B2;
+          const S s = A1 * A2 / BB;
+          total += double(s);
+          if (P) {
+            // d/dm_x of A1 A2 / (B1 B2): A1' = 2 m_y, A2' = -2 m_y, B1' = 2 m_x, B2' = -2 m_x
+            P[o + j] = (2 * my * A2 - 2 * my * A1) / BB - s * (2 * mx / B1 - 2 * mx / B2);
+            P[stride5 + o + j] = -s / B2;
+            P[2 * stride5 + o + j] = 2 * A1 / BB;
+          }
+        }
+      }
+    }
+  }
+  at::Tensor mean = at::empty({}, opt);
+  mean.fill_(total / double(C * plane));
+  return {mean, partials};
+}
+
+template <typename S>
+at::Tensor ssim_backward_t(const at::Tensor& x, const at::Tensor& y, const at::Tensor& window,
+                           const at::Tensor& partials, double v_mean, int64_t threads) {
+  const int C = int(x.size(0)), H = int(x.size(1)), W = int(x.size(2));
+  const int K = int(window.numel()), R = K / 2;
+  const S* g = window.data_ptr<S>();
+  const S* X = x.data_ptr<S>();
+  const S* Y = y.data_ptr<S>();
+  const S* P = partials.data_ptr<S>();
+  const int64_t plane = int64_t(H) * W, stride3 = int64_t(C) * plane;
+  const S w = S(v_mean / double(C * plane));
+  auto opt = x.options();
+  at::Tensor hblur = at::empty({3, C, H, W}, opt);
+  at::Tensor v_x = at::empty({C, H, W}, opt);
+  S* HB = hblur.data_ptr<S>();
+  S* VX = v_x.data_ptr<S>();
+  const int nt = nthreads(threads, int64_t(C) * H, 64);
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel num_threads(nt)
+  {
+    std::vector<S> pad(W + 2 * R, S(0));
+#pragma omp for schedule(static)
+    for (int64_t row = 0; row < int64_t(C) * H; ++row)
+      for (int s = 0; s < 3; ++s)
+        blur_row_h(P + s * stride3 + row * W, HB + s * stride3 + row * W, pad.data(), W, g, R);
+    std::vector<S> m[3];
+    for (auto& v : m) v.assign(W, S(0));
+#pragma omp for schedule(static)
+    for (int64_t row = 0; row < int64_t(C) * H; ++row) {
+      const int c = int(row / H), i = int(row % H);
+      for (auto& v : m) std::fill(v.begin(), v.end(), S(0));
+      const int k0 = std::max(0, R - i), k1 = std::min(2 * R, R + H - 1 - i);
+      for (int k = k0; k <= k1; ++k) {
+        const int64_t src = int64_t(c) * plane + int64_t(i + k - R) * W;
+        const S gk = g[k];
+        for (int s = 0; s < 3; ++s) {
+          const S* h = HB + s * stride3 + src;
+          S* mv = m[s].data();
+          for (int j = 0; j < W; ++j) mv[j] += gk * h[j];
+        }
+      }
+      const int64_t o = row * W;
+      for (int j = 0; j < W; ++j)
+        VX[o + j] = w * (m[0][j] + 2 * X[o + j] * m[1][j] + Y[o + j] * m[2][j]);
+    }
+  }
+  return v_x;
+}
+
+std::vector<at::Tensor> ssim_forward(const at::Tensor& x, const at::Tensor& y,
+                                     const at::Tensor& window, bool need_grad, int64_t threads) {
+  const auto dt = x.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "ssim: float32/64 only");
+  check_cpu_float(x, dt, "ssim: x");
+  check_cpu_float(y, dt, "ssim: y");
+  check_cpu_float(window, dt, "ssim: window");
+  TORCH_CHECK(x.dim() == 3 && x.sizes() == y.sizes(), "ssim: x and y must be [C, H, W] alike");
+  TORCH_CHECK(window.numel() % 2 == 1, "ssim: odd window only");
+  if (dt == at::kDouble) return ssim_forward_t<double>(x, y, window, need_grad, threads);
+  return ssim_forward_t<float>(x, y, window, need_grad, threads);
+}
+
+at::Tensor ssim_backward(const at::Tensor& x, const at::Tensor& y, const at::Tensor& window,
+                         const at::Tensor& partials, double v_mean, int64_t threads) {
+  if (x.scalar_type() == at::kDouble)
+    return ssim_backward_t<double>(x, y, window, partials, v_mean, threads);
+  return ssim_backward_t<float>(x, y, window, partials, v_mean, threads);
+}
+
+// ------------------------------------------------------------------------------------------
+// EWA projection (splatk/functional/projection.py): camera transform, Jacobian evaluated at
+// the clamped tangent, Sigma_2D = J R_c S S^T R_c^T J^T + blur I, conic = inverse / support^2.
+// ------------------------------------------------------------------------------------------
+struct Camera {
+  double R[9], t[3], fx, fy, cx, cy;
+  int width, height;
+  double support2, near, blur;
+};
+
+template <typename S>
+inline void quat_to_rot(const S* q, S R[9], S qn[4], S& norm) {
+  norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  const S inv = S(1) / std::max(norm, S(1e-12));
+  for (int i = 0; i < 4; ++i) qn[i] = q[i] * inv;
+  const S w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+  R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y), R[7] = 2 * (y * z + w * x), R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// Everything the backward pass needs is recomputed from the inputs (cheap per primitive).
+template <typename S>
+struct ProjectLocal {
+  S mc[3], zc, tx, ty, J[6], Rc[9], M[9], cov[9], a, b, c, det;
+  bool det_clamped, tx_in, ty_in;
+  S qn[4], qnorm;
+};
+
+template <typename S>
+inline void project_one(const Camera& cam, const S* mean, const S* quat, const S* scale,
+                        ProjectLocal<S>& L) {
+  for (int i = 0; i < 3; ++i)
+    L.mc[i] = S(cam.R[3 * i]) * mean[0] + S(cam.R[3 * i + 1]) * mean[1] +
+              S(cam.R[3 * i + 2]) * mean[2] + S(cam.t[i]);
+  const S fx = S(cam.fx), fy = S(cam.fy), cx = S(cam.cx), cy = S(cam.cy);
+  L.zc = std::max(L.mc[2], S(cam.near));
+  const S lox = (-cx - S(0.15) * cam.width) / fx, hix = (cam.width - cx + S(0.15) * cam.width) / fx;
+  const S loy = (-cy - S(0.15) * cam.height) / fy, hiy = (cam.height - cy + S(0.15) * cam.height) / fy;
+  const S rx = L.mc[0] / L.zc, ry = L.mc[1] / L.zc;
+  L.tx_in = rx >= lox && rx <= hix;
+  L.ty_in = ry >= loy && ry <= hiy;
+  L.tx = std::min(std::max(rx, lox), hix);
+  L.ty = std::min(std::max(ry, loy), hiy);
+  L.J[0] = fx / L.zc, L.J[1] = 0, L.J[2] = -fx * L.tx / L.zc;
+  L.J[3] = 0, L.J[4] = fy / L.zc, L.J[5] = -fy * L.ty / L.zc;
+  S Rq[9];
+  quat_to_rot(quat, Rq, L.qn, L.qnorm);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      L.Rc[3 * i + j] = S(cam.R[3 * i]) * Rq[j] + S(cam.R[3 * i + 1]) * Rq[3 + j] +
+                        S(cam.R[3 * i + 2]) * Rq[6 + j];
+      L.M[3 * i + j] = L.Rc[3 * i + j] * scale[j];
+    }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      L.cov[3 * i + j] = L.M[3 * i] * L.M[3 * j] + L.M[3 * i + 1] * L.M[3 * j + 1] +
+                         L.M[3 * i + 2] * L.M[3 * j + 2];
+  S JS[6];  // J @ cov
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j)
+      JS[3 * i + j] = L.J[3 * i] * L.cov[j] + L.J[3 * i + 1] * L.cov[3 + j] +
+                      L.J[3 * i + 2] * L.cov[6 + j];
+  L.a = JS[0] * L.J[0] + JS[1] * L.J[1] + JS[2] * L.J[2] + S(cam.blur);
+  L.b = JS[0] * L.J[3] + JS[1] * L.J[4] + JS[2] * L.J[5];
+  L.c = JS[3] * L.J[3] + JS[4] * L.J[4] + JS[5] * L.J[5] + S(cam.blur);
+  const S det = L.a * L.c - L.b * L.b;
+  L.det_clamped = !(det >= S(1e-12));
+  L.det = L.det_clamped ? S(1e-12) : det;
+}
+
+Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
+                   double support_sigmas, double near, double blur) {
+  at::Tensor v = viewmat.to(at::kDouble).contiguous(), k = K.to(at::kDouble).contiguous();
+  const double* vm = v.data_ptr<double>();
+  const double* kk = k.data_ptr<double>();
+  Camera cam;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) cam.R[3 * i + j] = vm[4 * i + j];
+    cam.t[i] = vm[4 * i + 3];
+  }
+  cam.fx = kk[0], cam.fy = kk[4], cam.cx = kk[2], cam.cy = kk[5];
+  cam.width = int(width), cam.height = int(height);
+  cam.support2 = support_sigmas * support_sigmas, cam.near = near, cam.blur = blur;
+  return cam;
+}
+
+template <typename S>
+std::vector<at::Tensor> project_forward_t(const at::Tensor& means, const at::Tensor& quats,
+                                          const at::Tensor& scales, const Camera& cam,
+                                          double support_sigmas, int64_t threads) {
+  const int64_t N = means.size(0);
+  auto opt = means.options();
+  at::Tensor means2d = at::empty({N, 2}, opt), conics = at::empty({N, 3}, opt),
+             depths = at::empty({N}, opt), visible = at::empty({N}, opt.dtype(at::kBool));
+  const S* m = means.data_ptr<S>();
+  const S* q = quats.data_ptr<S>();
+  const S* s = scales.data_ptr<S>();
+  S* m2 = means2d.data_ptr<S>();
+  S* co = conics.data_ptr<S>();
+  S* dp = depths.data_ptr<S>();
+  bool* vis = visible.data_ptr<bool>();
+  const S s2 = S(cam.support2), sig = S(support_sigmas);
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel for num_threads(nthreads(threads, N, 4096)) schedule(static)
+  for (int64_t n = 0; n < N; ++n) {
+    ProjectLocal<S> L;
+    project_one(cam, m + 3 * n, q + 4 * n, s + 3 * n, L);
+    co[3 * n] = L.c / L.det / s2;
+    co[3 * n + 1] = -L.b / L.det / s2;
+    co[3 * n + 2] = L.a / L.det / s2;
+    const S u = S(cam.fx) * L.mc[0] / L.zc + S(cam.cx);
+    const S v = S(cam.fy) * L.mc[1] / L.zc + S(cam.cy);
+    m2[2 * n] = u, m2[2 * n + 1] = v;
+    dp[n] = L.mc[2];
+    const S hx = sig * std::sqrt(L.a), hy = sig * std::sqrt(L.c);
+    vis[n] = (L.mc[2] > S(cam.near)) && (u + hx > 0) && (u - hx < S(cam.width)) &&
+             (v + hy > 0) && (v - hy < S(cam.height)) && std::isfinite(u) && std::isfinite(v);
+  }
+  return {means2d, conics, depths, visible};
+}
+
+template <typename S>
+std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Tensor& quats,
+                                           const at::Tensor& scales, const Camera& cam,
+                                           const at::Tensor& v_means2d, const at::Tensor& v_conics,
+                                           const at::Tensor& v_depths, int64_t threads) {
+  const int64_t N = means.size(0);
+  auto opt = means.options();
+  at::Tensor v_means = at::empty({N, 3}, opt), v_quats = at::empty({N, 4}, opt),
+             v_scales = at::empty({N, 3}, opt);
+  const S* m = means.data_ptr<S>();
+  const S* q = quats.data_ptr<S>();
+  const S* s = scales.data_ptr<S>();
+  const S* gm2 = v_means2d.data_ptr<S>();
+  const S* gco = v_conics.data_ptr<S>();
+  const S* gdp = v_depths.data_ptr<S>();
+  S* vm = v_means.data_ptr<S>();
+  S* vq = v_quats.data_ptr<S>();
+  S* vs = v_scales.data_ptr<S>();
+  const S s2 = S(cam.support2), fx = S(cam.fx), fy = S(cam.fy);
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel for num_threads(nthreads(threads, N, 4096)) schedule(static)
+  for (int64_t n = 0; n < N; ++n) {
+    const S g0 = gco[3 * n] / s2, g1 = gco[3 * n + 1] / s2, g2 = gco[3 * n + 2] / s2;
+    const S gu = gm2[2 * n], gv = gm2[2 * n + 1];
+    if (g0 == 0 && g1 == 0 && g2 == 0 && gu == 0 && gv == 0 && gdp[n] == 0) {
+      std::fill(vm + 3 * n, vm + 3 * n + 3, S(0));
+      std::fill(vq + 4 * n, vq + 4 * n + 4, S(0));
+      std::fill(vs + 3 * n, vs + 3 * n + 3, S(0));
+      continue;
+    }
+    ProjectLocal<S> L;
+    project_one(cam, m + 3 * n, q + 4 * n, s + 3 * n, L);
+    // conic_i = n_i / det with n = (c, -b, a), det = a c - b^2 (constant where clamped)
+    const S det = L.det;
+    const S kk = (g0 * L.c - g1 * L.b + g2 * L.a) / (det * det);
+    const S dda = L.det_clamped ? 0 : L.c, ddb = L.det_clamped ? 0 : -2 * L.b,
+            ddc = L.det_clamped ? 0 : L.a;
+    const S va = g2 / det - kk * dda, vb = -g1 / det - kk * ddb, vc = g0 / det - kk * ddc;
+    // cov2d = J cov J^T; only entries (0,0), (0,1), (1,1) are read: G = [[va, vb], [0, vc]],
+    // Gs = G + G^T. dL/dJ = Gs J cov, dL/dM = J^T Gs J M (cov = M M^T).
+    const S Gs[4] = {2 * va, vb, vb, 2 * vc};
+    S GJ[6];  // Gs @ J
+    for (int i = 0; i < 2; ++i)
+      for (int j = 0; j < 3; ++j) GJ[3 * i + j] = Gs[2 * i] * L.J[j] + Gs[2 * i + 1] * L.J[3 + j];
+    S vJ[6];
+    for (int i = 0; i < 2; ++i)
+      for (int j = 0; j < 3; ++j)
+        vJ[3 * i + j] = GJ[3 * i] * L.cov[j] + GJ[3 * i + 1] * L.cov[3 + j] +
+                        GJ[3 * i + 2] * L.cov[6 + j];
+    S JGJ[9];  // J^T Gs J
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) JGJ[3 * i + j] = L.J[i] * GJ[j] + L.J[3 + i] * GJ[3 + j];
+    S vM[9];
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        vM[3 * i + j] = JGJ[3 * i] * L.M[j] + JGJ[3 * i + 1] * L.M[3 + j] +
+                        JGJ[3 * i + 2] * L.M[6 + j];
+    // M = Rc diag(s), Rc = Rw R
+    const S* sc = s + 3 * n;
+    S vRc[9];
+    for (int j = 0; j < 3; ++j) {
+      vs[3 * n + j] = vM[j] * L.Rc[j] + vM[3 + j] * L.Rc[3 + j] + vM[6 + j] * L.Rc[6 + j];
+      for (int i = 0; i < 3; ++i) vRc[3 * i + j] = vM[3 * i + j] * sc[j];
+    }
+    S G[9];  // dL/dR = Rw^T dL/dRc
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        G[3 * i + j] = S(cam.R[i]) * vRc[j] + S(cam.R[3 + i]) * vRc[3 + j] +
+                       S(cam.R[6 + i]) * vRc[6 + j];
+    const S w = L.qn[0], x = L.qn[1], y = L.qn[2], z = L.qn[3];
+    S vqn[4];
+    vqn[0] = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+    vqn[1] = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] +
+                  w * G[7] - 2 * x * G[8]);
+    vqn[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] +
+                  z * G[7] - 2 * y * G[8]);
+    vqn[3] = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] +
+                  x * G[6] + y * G[7]);
+    // q_hat = q / max(|q|, eps)
+    const S qdot = vqn[0] * w + vqn[1] * x + vqn[2] * y + vqn[3] * z;
+    const bool qclamped = !(L.qnorm > S(1e-12));
+    const S qinv = S(1) / std::max(L.qnorm, S(1e-12));
+    for (int i = 0; i < 4; ++i) vq[4 * n + i] = (vqn[i] - (qclamped ? 0 : L.qn[i] * qdot)) * qinv;
+    // J and means2d -> camera-space centre
+    const S zc = L.zc, zc2 = zc * zc;
+    S vx = gu * fx / zc, vy = gv * fy / zc;
+    S vzc = -gu * fx * L.mc[0] / zc2 - gv * fy * L.mc[1] / zc2;
+    vzc += -fx / zc2 * vJ[0] + fx * L.tx / zc2 * vJ[2] - fy / zc2 * vJ[4] + fy * L.ty / zc2 * vJ[5];
+    const S vtx = -fx / zc * vJ[2], vty = -fy / zc * vJ[5];
+    if (L.tx_in) vx += vtx / zc, vzc += -vtx * L.mc[0] / zc2;
+    if (L.ty_in) vy += vty / zc, vzc += -vty * L.mc[1] / zc2;
+    S vz = gdp[n] + (L.mc[2] >= S(cam.near) ? vzc : S(0));
+    for (int j = 0; j < 3; ++j)
+      vm[3 * n + j] = S(cam.R[j]) * vx + S(cam.R[3 + j]) * vy + S(cam.R[6 + j]) * vz;
+  }
+  return {v_means, v_quats, v_scales};
+}
+
+void check_project(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales) {
+  const auto dt = means.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "project: float32/64 only");
+  check_cpu_float(means, dt, "project: means");
+  check_cpu_float(quats, dt, "project: quats");
+  check_cpu_float(scales, dt, "project: scales");
+  const int64_t n = means.size(0);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "project: means must be [N, 3]");
+  TORCH_CHECK(quats.dim() == 2 && quats.size(0) == n && quats.size(1) == 4,
+              "project: quats must be [N, 4]");
+  TORCH_CHECK(scales.dim() == 2 && scales.size(0) == n && scales.size(1) == 3,
+              "project: scales must be [N, 3]");
+}
+
+std::vector<at::Tensor> project_forward(const at::Tensor& means, const at::Tensor& quats,
+                                        const at::Tensor& scales, const at::Tensor& viewmat,
+                                        const at::Tensor& K, int64_t width, int64_t height,
+                                        double support_sigmas, double near, double blur,
+                                        int64_t threads) {
+  check_project(means, quats, scales);
+  Camera cam = make_camera(viewmat, K, width, height, support_sigmas, near, blur);
+  if (means.scalar_type() == at::kDouble)
+    return project_forward_t<double>(means, quats, scales, cam, support_sigmas, threads);
+  return project_forward_t<float>(means, quats, scales, cam, support_sigmas, threads);
+}
+
+std::vector<at::Tensor> project_backward(const at::Tensor& means, const at::Tensor& quats,
+                                         const at::Tensor& scales, const at::Tensor& viewmat,
+                                         const at::Tensor& K, int64_t width, int64_t height,
+                                         double support_sigmas, double near, double blur,
+                                         const at::Tensor& v_means2d, const at::Tensor& v_conics,
+                                         const at::Tensor& v_depths, int64_t threads) {
+  check_project(means, quats, scales);
+  const auto dt = means.scalar_type();
+  check_cpu_float(v_means2d, dt, "project: v_means2d");
+  check_cpu_float(v_conics, dt, "project: v_conics");
+  check_cpu_float(v_depths, dt, "project: v_depths");
+  Camera cam = make_camera(viewmat, K, width, height, support_sigmas, near, blur);
+  if (dt == at::kDouble)
+    return project_backward_t<double>(means, quats, scales, cam, v_means2d, v_conics, v_depths,
+                                      threads);
+  return project_backward_t<float>(means, quats, scales, cam, v_means2d, v_conics, v_depths,
+                                   threads);
+}
+
+// ------------------------------------------------------------------------------------------
+// Spherical harmonics colour, degree 0..3: rgb = max(sum_b basis_b(d / |d|) coeff_b + 0.5, 0).
+// ------------------------------------------------------------------------------------------
+constexpr double kC0 = 0.28209479177387814, kC1 = 0.4886025119029199;
+constexpr double kC2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+                           -1.0925484305920792, 0.5462742152960396};
+constexpr double kC3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658,
+                           0.3731763325901154,  -0.4570457994644658, 1.445305721320277,
+                           -0.5900435899266435};
+
+// basis values and, if dB != nullptr, their derivatives d basis_b / d(x, y, z) as dB[3b + k]
+template <typename S>
+inline void sh_basis_grad(S x, S y, S z, int degree, S* B, S* dB) {
+  B[0] = S(kC0);
+  if (dB) dB[0] = dB[1] = dB[2] = 0;
+  if (degree < 1) return;
+  const S c1 = S(kC1);
+  B[1] = -c1 * y, B[2] = c1 * z, B[3] = -c1 * x;
+  if (dB) {
+    S d[9] = {0, -c1, 0, 0, 0, c1, -c1, 0, 0};
+    std::copy(d, d + 9, dB + 3);
+  }
+  if (degree < 2) return;
+  const S xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  const S* c2 = nullptr;
+  S c2v[5];
+  for (int i = 0; i < 5; ++i) c2v[i] = S(kC2[i]);
+  c2 = c2v;
+  B[4] = c2[0] * xy, B[5] = c2[1] * yz, B[6] = c2[2] * (2 * zz - xx - yy), B[7] = c2[3] * xz,
+  B[8] = c2[4] * (xx - yy);
+  if (dB) {
+    S d[15] = {c2[0] * y, c2[0] * x, 0,
+               0, c2[1] * z, c2[1] * y,
+               -2 * x * c2[2], -2 * y * c2[2], 4 * z * c2[2],
+               c2[3] * z, 0, c2[3] * x,
+               2 * x * c2[4], -2 * y * c2[4], 0};
+    std::copy(d, d + 15, dB + 12);
+  }
+  if (degree < 3) return;
+  S c3[7];
+  for (int i = 0; i < 7; ++i) c3[i] = S(kC3[i]);
+  B[9] = c3[0] * y * (3 * xx - yy);
+  B[10] = c3[1] * xy * z;
+  B[11] = c3[2] * y * (4 * zz - xx - yy);
+  B[12] = c3[3] * z * (2 * zz - 3 * xx - 3 * yy);
+  B[13] = c3[4] * x * (4 * zz - xx - yy);
+  B[14] = c3[5] * z * (xx - yy);
+  B[15] = c3[6] * x * (xx - 3 * yy);
+  if (dB) {
+    S d[21] = {6 * xy * c3[0], c3[0] * (3 * xx - 3 * yy), 0,
+               c3[1] * yz, c3[1] * xz, c3[1] * xy,
+               -2 * xy * c3[2], c3[2] * (4 * zz - xx - 3 * yy), 8 * yz * c3[2],
+               -6 * xz * c3[3], -6 * yz * c3[3], c3[3] * (6 * zz - 3 * xx - 3 * yy),
+               c3[4] * (4 * zz - 3 * xx - yy), -2 * xy * c3[4], 8 * xz * c3[4],
+               2 * xz * c3[5], -2 * yz * c3[5], c3[5] * (xx - yy),
+               c3[6] * (3 * xx - 3 * yy), -6 * xy * c3[6], 0};
+    std::copy(d, d + 21, dB + 27);
+  }
+}
+
+template <typename S>
+inline void unit_dir(const S* d, S u[3], S& norm) {
+  norm = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+  const S inv = S(1) / std::max(norm, S(1e-12));
+  for (int k = 0; k < 3; ++k) u[k] = d[k] * inv;
+}
+
+template <typename S>
+at::Tensor sh_forward_t(const at::Tensor& sh0, const at::Tensor& sh_rest, const at::Tensor& dirs,
+                        int degree, int64_t threads) {
+  const int64_t N = dirs.size(0);
+  const int rest = int(sh_rest.size(1)), nb = (degree + 1) * (degree + 1);
+  at::Tensor rgb = at::empty({N, 3}, dirs.options());
+  const S* c0 = sh0.data_ptr<S>();
+  const S* cr = sh_rest.data_ptr<S>();
+  const S* d = dirs.data_ptr<S>();
+  S* out = rgb.data_ptr<S>();
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel for num_threads(nthreads(threads, N, 4096)) schedule(static)
+  for (int64_t n = 0; n < N; ++n) {
+    S u[3], norm, B[16];
+    unit_dir(d + 3 * n, u, norm);
+    sh_basis_grad<S>(u[0], u[1], u[2], degree, B, nullptr);
+    for (int ch = 0; ch < 3; ++ch) {
+      S acc = B[0] * c0[3 * n + ch];
+      for (int b = 1; b < nb; ++b) acc += B[b] * cr[(n * rest + b - 1) * 3 + ch];
+      out[3 * n + ch] = std::max(acc + S(0.5), S(0));
+    }
+  }
+  return rgb;
+}
+
+template <typename S>
+std::vector<at::Tensor> sh_backward_t(const at::Tensor& sh0, const at::Tensor& sh_rest,
+                                      const at::Tensor& dirs, int degree, const at::Tensor& v_rgb,
+                                      bool need_dirs, int64_t threads) {
+  const int64_t N = dirs.size(0);
+  const int rest = int(sh_rest.size(1)), nb = (degree + 1) * (degree + 1);
+  at::Tensor v0 = at::empty({N, 1, 3}, dirs.options());
+  at::Tensor vr = at::zeros({N, rest, 3}, dirs.options());
+  at::Tensor vd = at::empty({N, 3}, dirs.options());
+  const S* c0 = sh0.data_ptr<S>();
+  const S* cr = sh_rest.data_ptr<S>();
+  const S* d = dirs.data_ptr<S>();
+  const S* g = v_rgb.data_ptr<S>();
+  S* pv0 = v0.data_ptr<S>();
+  S* pvr = vr.data_ptr<S>();
+  S* pvd = vd.data_ptr<S>();
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel for num_threads(nthreads(threads, N, 4096)) schedule(static)
+  for (int64_t n = 0; n < N; ++n) {
+    S u[3], norm, B[16], dB[48];
+    unit_dir(d + 3 * n, u, norm);
+    sh_basis_grad<S>(u[0], u[1], u[2], degree, B, need_dirs ? dB : nullptr);
+    S gp[3];  // gradient of the pre-clamp value (clamp_min passes where value >= 0)
+    for (int ch = 0; ch < 3; ++ch) {
+      S acc = B[0] * c0[3 * n + ch];
+      for (int b = 1; b < nb; ++b) acc += B[b] * cr[(n * rest + b - 1) * 3 + ch];
+      gp[ch] = acc + S(0.5) >= 0 ? g[3 * n + ch] : S(0);
+      pv0[3 * n + ch] = B[0] * gp[ch];
+      for (int b = 1; b < nb; ++b) pvr[(n * rest + b - 1) * 3 + ch] = B[b] * gp[ch];
+    }
+    if (!need_dirs) continue;
+    S vu[3] = {0, 0, 0};
+    for (int b = 1; b < nb; ++b) {
+      const S* cb = cr + (n * rest + b - 1) * 3;
+      const S vb = gp[0] * cb[0] + gp[1] * cb[1] + gp[2] * cb[2];
+      for (int k = 0; k < 3; ++k) vu[k] += vb * dB[3 * b + k];
+    }
+    const S dot = vu[0] * u[0] + vu[1] * u[1] + vu[2] * u[2];
+    const bool clamped = !(norm > S(1e-12));
+    const S inv = S(1) / std::max(norm, S(1e-12));
+    for (int k = 0; k < 3; ++k) pvd[3 * n + k] = (vu[k] - (clamped ? 0 : u[k] * dot)) * inv;
+  }
+  return {v0, vr, vd};
+}
+
+void check_sh(const at::Tensor& sh0, const at::Tensor& sh_rest, const at::Tensor& dirs,
+              int64_t degree) {
+  const auto dt = dirs.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "sh: float32/64 only");
+  check_cpu_float(sh0, dt, "sh: sh0");
+  check_cpu_float(sh_rest, dt, "sh: sh_rest");
+  check_cpu_float(dirs, dt, "sh: dirs");
+  const int64_t n = dirs.size(0);
+  TORCH_CHECK(dirs.dim() == 2 && dirs.size(1) == 3, "sh: dirs must be [N, 3]");
+  TORCH_CHECK(sh0.dim() == 3 && sh0.size(0) == n && sh0.size(1) == 1 && sh0.size(2) == 3,
+              "sh: sh0 must be [N, 1, 3]");
+  TORCH_CHECK(sh_rest.dim() == 3 && sh_rest.size(0) == n && sh_rest.size(2) == 3,
+              "sh: sh_rest must be [N, B, 3]");
+  TORCH_CHECK(degree >= 0 && degree <= 3 && (degree + 1) * (degree + 1) - 1 <= sh_rest.size(1),
+              "sh: degree out of range for the coefficients");
+}
+
+at::Tensor sh_forward(const at::Tensor& sh0, const at::Tensor& sh_rest, const at::Tensor& dirs,
+                      int64_t degree, int64_t threads) {
+  check_sh(sh0, sh_rest, dirs, degree);
+  if (dirs.scalar_type() == at::kDouble)
+    return sh_forward_t<double>(sh0, sh_rest, dirs, int(degree), threads);
+  return sh_forward_t<float>(sh0, sh_rest, dirs, int(degree), threads);
+}
+
+std::vector<at::Tensor> sh_backward(const at::Tensor& sh0, const at::Tensor& sh_rest,
+                                    const at::Tensor& dirs, int64_t degree,
+                                    const at::Tensor& v_rgb, bool need_dirs, int64_t threads) {
+  check_sh(sh0, sh_rest, dirs, degree);
+  check_cpu_float(v_rgb, dirs.scalar_type(), "sh: v_rgb");
+  if (dirs.scalar_type() == at::kDouble)
+    return sh_backward_t<double>(sh0, sh_rest, dirs, int(degree), v_rgb, need_dirs, threads);
+  return sh_backward_t<float>(sh0, sh_rest, dirs, int(degree), v_rgb, need_dirs, threads);
+}
+
+}  // namespace
+
+void register_fused_ops(pybind11::module_& m) {
+  m.def("ssim_forward", &ssim_forward,
+        "ssim_forward(x[C,H,W], y, window[K], need_grad, threads) -> [mean, partials[3,C,H,W]]");
+  m.def("ssim_backward", &ssim_backward,
+        "ssim_backward(x, y, window, partials, v_mean, threads) -> v_x[C,H,W]");
+  m.def("project_forward", &project_forward,
+        "project_forward(means, quats, scales, viewmat, K, width, height, support_sigmas, near, "
+        "blur, threads) -> [means2d, conics, depths, visible]");
+  m.def("project_backward", &project_backward,
+        "project_backward(means, quats, scales, viewmat, K, width, height, support_sigmas, near, "
+        "blur, v_means2d, v_conics, v_depths, threads) -> [v_means, v_quats, v_scales]");
+  m.def("sh_forward", &sh_forward, "sh_forward(sh0, sh_rest, dirs, degree, threads) -> rgb[N,3]");
+  m.def("sh_backward", &sh_backward,
+        "sh_backward(sh0, sh_rest, dirs, degree, v_rgb, need_dirs, threads) -> "
+        "[v_sh0, v_sh_rest, v_dirs]");
+}
+
+}  // namespace splatk
