@@ -13,6 +13,8 @@ extension built), so ``--backend cpu`` / ``auto`` speeds up the whole iteration 
 """
 from __future__ import annotations
 
+import os
+
 import torch
 from torch.autograd.function import once_differentiable
 
@@ -20,7 +22,10 @@ from . import cpu_native
 
 
 def use_fused(backend_name: str, device: torch.device | str) -> bool:
-    """Whether the fused ops apply: the resolved backend is ``cpu`` and tensors are on the CPU."""
+    """Whether the fused ops apply: the resolved backend is ``cpu``, tensors are on the CPU, and
+    ``SPLATK_FUSED`` is not ``0`` (the switch ``benchmarks/train_step.py`` compares with)."""
+    if os.environ.get("SPLATK_FUSED", "1") == "0":
+        return False
     return backend_name == "cpu" and torch.device(device).type == "cpu" and cpu_native.available()
 
 

@@ -1,0 +1,119 @@
+"""Whole training iteration benchmark: ms per iteration and where the time goes.
+
+    python benchmarks/train_step.py [--scene ../shared/data/lego] [--budget 50000]
+                                    [--warmup 300] [--iters 100] [--threads 2] [--out PATH]
+
+Trains the scene from random init with the default settings (Gaussian kernel, SH degree 3,
+MCMC) on the ``cpu`` backend, twice: with the fused native ops (SSIM, projection, SH; the
+default) and without them (``SPLATK_FUSED=0``: torch ops around the native rasteriser, as
+before they existed). After ``--warmup`` iterations (the SH degree is forced to 3 and every
+primitive of the budget exists), it times ``--iters`` iterations, then profiles 20 more with
+torch.profiler and groups self CPU time by op. Each variant runs in its own subprocess.
+Writes benchmarks/results/train_step.json and prints a table. The target of issue #3: one
+iteration on lego (400x400, 50k splats) <= 100 ms on 2 cores.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = Path(__file__).resolve().parent / "results" / "train_step.json"
+DEFAULT_SCENE = ROOT.parent / "shared" / "data" / "lego"
+
+#: self-CPU-time groups of the profile (first match wins)
+GROUPS = [
+    ("rasterise", ("_Rasterize",)),
+    ("ssim", ("_SSIM", "convolution", "conv2d", "mkldnn")),
+    ("projection", ("_Project",)),
+    ("sh colour", ("_SHColor",)),
+    ("adam", ("adam", "Adam", "addcdiv", "lerp", "sqrt")),
+    ("gather/scatter visible", ("index", "nonzero")),
+]
+
+
+def run_variant(args) -> dict:
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from splatk.data import load_scene
+    from splatk.stages.fit import FitConfig, build_model
+    from splatk.train.trainer import TrainConfig, Trainer
+
+    torch.set_num_threads(args.threads)
+    scene = load_scene(args.scene)
+    cfg = FitConfig(train=TrainConfig(init="random", budget=args.budget, iters=30_000, backend="cpu"))
+    model = build_model(scene, cfg)
+    trainer = Trainer(scene, model, cfg.train)
+    trainer.it = 3000  # SH degree 3 from the start, as in the second half of a run
+    for _ in range(args.warmup):
+        trainer.train_step()
+    t = time.perf_counter()
+    for _ in range(args.iters):
+        trainer.train_step()
+    ms = (time.perf_counter() - t) / args.iters * 1e3
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(20):
+            trainer.train_step()
+    groups = {name: 0.0 for name, _ in GROUPS}
+    groups["other"] = 0.0
+    total = 0.0
+    for ev in prof.key_averages():
+        us = ev.self_cpu_time_total
+        total += us
+        for name, keys in GROUPS:
+            if any(k in ev.key for k in keys):
+                groups[name] += us
+                break
+        else:
+            groups["other"] += us
+    share = {k: round(v / total, 3) for k, v in groups.items()}
+    return {"ms_per_iter": round(ms, 1), "num_primitives": model.num_primitives,
+            "image": [scene.train[0].width, scene.train[0].height], "profile_share": share}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(DEFAULT_SCENE))
+    ap.add_argument("--budget", type=int, default=50_000)
+    ap.add_argument("--warmup", type=int, default=300)
+    ap.add_argument("--iters", type=int, default=100)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--variant", choices=["fused", "unfused"], help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.variant:
+        print(json.dumps(run_variant(args)))
+        return
+    if not Path(args.scene).is_dir():
+        sys.exit(f"{args.scene}: scene folder not found (this benchmark reads ../shared/data/lego)")
+    rows = {}
+    for variant in ("fused", "unfused"):
+        env = dict(os.environ, SPLATK_FUSED="1" if variant == "fused" else "0")
+        cmd = [sys.executable, __file__, "--variant", variant, "--scene", args.scene,
+               "--budget", str(args.budget), "--warmup", str(args.warmup), "--iters", str(args.iters),
+               "--threads", str(args.threads)]
+        load0 = os.getloadavg()[0]
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+        rows[variant] = {**json.loads(out.stdout.strip().splitlines()[-1]),
+                         "loadavg_before": round(load0, 2)}
+    result = {"scene": args.scene, "budget": args.budget, "threads": args.threads,
+              "warmup": args.warmup, "iters": args.iters, "cpu_count": os.cpu_count(),
+              "variants": rows}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    names = [n for n, _ in GROUPS] + ["other"]
+    print(f"{'variant':10s} {'ms/iter':>8s} " + " ".join(f"{n[:12]:>12s}" for n in names))
+    for variant, r in rows.items():
+        print(f"{variant:10s} {r['ms_per_iter']:8.1f} "
+              + " ".join(f"{100 * r['profile_share'][n]:11.0f}%" for n in names))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
