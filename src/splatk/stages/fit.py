@@ -24,6 +24,8 @@ import yaml
 
 from ..data import load_scene
 from ..errors import InputError
+from ..backends import GAUSSIAN_SUPPORT_SIGMAS
+from ..kernels import KERNELS
 from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
 from ..models.volumetric import SplatModel
@@ -165,7 +167,17 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel:
                                cfg.train.seed)
     # Random points start 10x smaller than their neighbour spacing (3DGS-MCMC's init_scale 0.1):
     # at full spacing they blanket every view and take thousands of iterations to clear.
-    scale_factor = cfg.train.init_scale if cfg.train.init_scale > 0 else (0.1 if cfg.train.init == "random" else 1.0)
+    # That 0.1 is for a 3-sigma Gaussian support; kernels whose support ends at 1 sigma (Beta,
+    # learned) start 3x larger so that every kernel starts from the same screen footprint.
+    # Measured on cup (downscale 4, 20k random points, 1000 iterations, train-view PSNR):
+    # learned k=2 20.05 dB at 0.1, 22.06 dB at 0.3; Gaussian 21.44 dB at 0.1.
+    if cfg.train.init_scale > 0:
+        scale_factor = cfg.train.init_scale
+    elif cfg.train.init == "random":
+        support = getattr(KERNELS.get(cfg.kernel), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS)
+        scale_factor = 0.1 * GAUSSIAN_SUPPORT_SIGMAS / support
+    else:
+        scale_factor = 1.0
     return SplatModel.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color, scale_factor=scale_factor,
                                   kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
 
