@@ -62,6 +62,17 @@ LOG_ANGLE_SCALE = 2.5
 ARCH_OPTIONS = ("latent_dim", "latent2d_dim", "proj_width", "dec_width", "proj_inputs")
 
 
+def _use_bf16(precision: str, grad_enabled: bool) -> bool:
+    if precision == "bf16":
+        return True
+    if precision == "fp32" or grad_enabled:
+        return False
+    try:  # "auto": only where the CPU multiplies bf16 natively (AVX-512 BF16, AMX)
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 def parse_proj_inputs(spec) -> tuple[str, ...]:
     """"z,mu,s,R" (any order, any subset; list or comma string) -> canonical ordered tuple."""
     items = spec.split(",") if isinstance(spec, str) else list(spec)
@@ -147,6 +158,14 @@ class LearnedKernel(Kernel):
             1e-3: 27.98 / 28.63, 3e-3: 27.24 / 28.05; larger rates cost PSNR on both splits.
         weights: pretrained networks from `splatk pretrain`: "default" (the shipped cosine
             file), a path, or "none" (He init, for the no-pretraining ablation).
+        proj_precision: arithmetic of Phi_proj's matrix products: "fp32", "bf16" (CPU autocast;
+            weights, inputs and z2d stay float32, Phi_dec stays float32), or "auto": bf16 for
+            renders without gradients (eval, export) on a CPU with native bf16 units, fp32
+            otherwise. Phi_proj runs once per visible primitive and view and is most of the
+            learned kernel's render cost: on this project's 2-core AVX-512 machine its four
+            layers at 50k primitives take 18 ms in fp32 and 5 ms in bf16. Training stays fp32
+            under "auto": there bf16 was slower (59.6 vs 43.6 ms per iteration on cup at 1/4
+            size, 20k primitives; same test PSNR, 22.18 vs 22.13 dB after 2000 iterations).
     """
 
     name = "learned"
@@ -167,6 +186,7 @@ class LearnedKernel(Kernel):
         net_lr_mult: float | None = None,
         z3d_lr: float = 1e-4,
         weights: str | None = "default",
+        proj_precision: str = "auto",
     ):
         super().__init__()
         k = int(k)
@@ -182,6 +202,9 @@ class LearnedKernel(Kernel):
         self.net_lr = float(net_lr)
         self.net_lr_final = float(net_lr_final)
         self.z3d_lr = float(z3d_lr)
+        if proj_precision not in ("auto", "fp32", "bf16"):
+            raise ValueError(f"learned kernel: proj_precision must be auto, fp32 or bf16, got {proj_precision!r}")
+        self.proj_precision = proj_precision
         w = "none" if weights is None else str(weights)
         self.weights = w
         pretrained = w.lower() != "none"
@@ -223,6 +246,7 @@ class LearnedKernel(Kernel):
             "net_lr_mult": self.net_lr_mult,
             "z3d_lr": self.z3d_lr,
             "weights": self.weights,
+            "proj_precision": self.proj_precision,
         }
 
     def arch_options(self) -> dict:
@@ -307,7 +331,12 @@ class LearnedKernel(Kernel):
 
     def project(self, z3d: torch.Tensor | None, view: ViewContext) -> torch.Tensor:
         """z2d = Phi_proj(z3d, mu_cam, s, R_cam) (paper Eq. 5): [M, latent2d_dim]."""
-        return self.proj(self.encode(z3d, view))
+        x = self.encode(z3d, view)
+        if x.device.type == "cpu" and _use_bf16(self.proj_precision, torch.is_grad_enabled()):
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                z2d = self.proj(x)
+            return z2d.float()
+        return self.proj(x)
 
     def decode(self, z2d: torch.Tensor, r2: torch.Tensor, logits: bool = False) -> torch.Tensor:
         """d = Phi_dec(r^2, z2d) (paper Eq. 6) at many radii per primitive.

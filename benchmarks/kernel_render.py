@@ -1,0 +1,88 @@
+"""Render time of the learned kernel against the Gaussian on the same trained geometry.
+
+    python benchmarks/kernel_render.py RUN [--views 10] [--reps 7] [--threads 2] [--out PATH]
+
+RUN is a finished `splatk fit` run with the Gaussian kernel (e.g. `splatk fit
+../shared/data/lego --out runs/lego --budget 50000 --time-budget 10m`). The learned models
+reuse its primitives: same centres, rotations, opacities and colours, scales x3 (the learned
+kernel's support ends at 1 sigma, the Gaussian's at 3, so the screen footprints match), and
+zero latents. Times are the mean over ``--reps`` passes over the first ``--views`` test views
+(the median over passes) of `model.render` without gradients on the ``cpu`` backend (projection, colour, Phi_proj /
+Phi_dec for the learned kernel, rasterisation). Writes benchmarks/results/kernel_render.json
+and prints a table. Issue #4's target: learned k=2 <= 1.3x the Gaussian.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results" / "kernel_render.json"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run")
+    ap.add_argument("--views", type=int, default=10)
+    ap.add_argument("--reps", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args()
+
+    import torch
+
+    from splatk.data import load_scene
+    from splatk.kernels import make_kernel
+    from splatk.models.io import load_model
+    from splatk.models.volumetric import SplatModel
+
+    torch.set_num_threads(args.threads)
+    model, meta = load_model(Path(args.run) / "model.pt")
+    if model.kernel.name != "gaussian":
+        raise SystemExit(f"{args.run}: needs a run with the Gaussian kernel, found {model.kernel.name}")
+    scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1))
+    cams = scene.test[: args.views]
+    bg = torch.tensor(scene.background)
+
+    def time_renders(m) -> float:
+        with torch.no_grad():
+            for c in cams[:2]:
+                m.render(c, bg, backend="cpu")
+            passes = []
+            for _ in range(args.reps):
+                t = time.perf_counter()
+                for c in cams:
+                    m.render(c, bg, backend="cpu")
+                passes.append((time.perf_counter() - t) / len(cams) * 1e3)
+        return statistics.median(passes)  # this VM's timings are noisy: median of the passes
+
+    rows = {"gaussian": {"ms": time_renders(model)}}
+    prims = {k: v.detach().clone() for k, v in model.prims.items()}
+    prims["log_scales"] = prims["log_scales"] + math.log(3.0)
+    for precision in ("auto", "fp32"):
+        for k in (2, 4, 8):
+            kernel = make_kernel("learned", k=k, proj_precision=precision)
+            p = dict(prims)
+            p.update(kernel.init_primitive_params(model.num_primitives, torch.device("cpu")))
+            rows[f"learned k={k} ({precision})"] = {"ms": time_renders(SplatModel(kernel, model.color, p))}
+    base = rows["gaussian"]["ms"]
+    for r in rows.values():
+        r["ms"] = round(r["ms"], 1)
+        r["vs_gaussian"] = round(r["ms"] / base, 2)
+    result = {"run": str(Path(args.run).resolve()), "num_primitives": model.num_primitives,
+              "image": [cams[0].width, cams[0].height], "views": len(cams), "reps": args.reps,
+              "threads": args.threads, "loadavg": round(os.getloadavg()[0], 2), "kernels": rows}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    print(f"{'kernel':24s} {'ms/render':>10s} {'x gaussian':>11s}")
+    for name, r in rows.items():
+        print(f"{name:24s} {r['ms']:10.1f} {r['vs_gaussian']:11.2f}")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
