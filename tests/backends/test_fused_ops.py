@@ -68,21 +68,25 @@ def test_projection_matches_reference(dtype, support):
     means, quats, scales = _ellipsoids(2000, dtype)
     vm, K = _camera(dtype)
     ref = project_ellipsoids(means, quats, scales, vm, K, 320, 240, support_sigmas=support)
-    m2, co, dp, vis = project_ellipsoids_fused(means, quats, scales, vm, K, 320, 240, support_sigmas=support)
+    m2, co, dp, vis, mc, rc = project_ellipsoids_fused(means, quats, scales, vm, K, 320, 240,
+                                                       support_sigmas=support, want_view=True)
     assert torch.equal(vis, ref.visible)
     assert 100 < int(vis.sum()) < 2000  # the scene exercises both branches
     v = vis
-    for a, b in ((m2, ref.means2d), (co, ref.conics), (dp, ref.depths)):
+    outs = (m2, co, dp, mc, rc)
+    refs = (ref.means2d, ref.conics, ref.depths, ref.means_cam, ref.rotmats_cam)
+    for a, b in zip(outs, refs):
         assert _rel(a[v], b[v]) < TOL[dtype]
     g = torch.Generator().manual_seed(2)
     w = [torch.randn(t.shape, generator=g, dtype=dtype) * v.view(-1, *[1] * (t.dim() - 1))
-         for t in (m2, co, dp)]
+         for t in outs]
 
-    def loss(a, b, c):  # conics are ~1e-3: scale them up so their gradients count
-        return (a * w[0]).sum() + 1e3 * (b * w[1]).sum() + (c * w[2]).sum()
+    def loss(a, b, c, d, e):  # conics are ~1e-3: scale them up so their gradients count
+        return ((a * w[0]).sum() + 1e3 * (b * w[1]).sum() + (c * w[2]).sum() + (d * w[3]).sum()
+                + (e * w[4]).sum())
 
-    g_fused = torch.autograd.grad(loss(m2, co, dp), (means, quats, scales))
-    g_ref = torch.autograd.grad(loss(ref.means2d, ref.conics, ref.depths), (means, quats, scales))
+    g_fused = torch.autograd.grad(loss(*outs), (means, quats, scales))
+    g_ref = torch.autograd.grad(loss(*refs), (means, quats, scales))
     for a, b in zip(g_fused, g_ref):
         assert _rel(a, b) < 20 * TOL[dtype]
 
@@ -95,8 +99,8 @@ def test_projection_gradcheck():
     vm, K = _camera(torch.float64)
 
     def f(m, q, s):
-        a, b, c, _ = project_ellipsoids_fused(m, q, s, vm, K, 320, 240)
-        return a, 1e3 * b, c
+        a, b, c, _, d, e = project_ellipsoids_fused(m, q, s, vm, K, 320, 240, want_view=True)
+        return a, 1e3 * b, c, d, e
 
     assert torch.autograd.gradcheck(f, (means, quats, scales))
 
@@ -131,18 +135,23 @@ def test_sh_gradcheck():
     assert torch.autograd.gradcheck(lambda a, b, c: eval_sh_fused(a, b, c, 3), (sh0, rest, dirs))
 
 
-def test_cpu_render_matches_torch_render():
-    """A whole render through the fused path equals the pure-torch path, image and gradients."""
+@pytest.mark.parametrize("kernel", ["gaussian", "learned"])
+def test_cpu_render_matches_torch_render(kernel):
+    """A whole render through the fused path equals the pure-torch path, image and gradients
+    (the learned kernel also takes camera-space centres and rotations from the projection)."""
     from splatk.models.volumetric import SplatModel
     from tests.scenes import synthetic_scene
 
     scene = synthetic_scene(num_views=2)
     torch.manual_seed(0)
-    m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 3})
+    m = SplatModel.from_points(scene.points, scene.point_colors, kernel=kernel,
+                               color_options={"sh_degree": 3})
     with torch.no_grad():  # anisotropic, rotated, view-dependent: every gradient is non-trivial
         m.prims["sh_rest"].normal_(0, 0.1)
         m.prims["log_scales"].add_(torch.randn_like(m.prims["log_scales"]) * 0.5)
         m.prims["quats"].normal_()
+        if "z3d" in m.prims:
+            m.prims["z3d"].normal_(0, 0.5)
     cam = scene.train[0]
     bg = torch.tensor(scene.background)
     grads = []

@@ -70,43 +70,48 @@ def ssim_mean_fused(img: torch.Tensor, ref: torch.Tensor, window_size: int = 11,
 # ---- EWA projection --------------------------------------------------------------------------
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmat, K, width, height, support_sigmas, near, blur):
-        means2d, conics, depths, visible = _ext().project_forward(
+    def forward(ctx, means, quats, scales, viewmat, K, width, height, support_sigmas, near, blur,
+                want_view):
+        means2d, conics, depths, visible, means_cam, rot_cam = _ext().project_forward(
             means, quats, scales, viewmat, K, width, height, support_sigmas, near, blur,
-            torch.get_num_threads())
+            want_view, torch.get_num_threads())
         ctx.save_for_backward(means, quats, scales, viewmat, K)
         ctx.meta = (width, height, support_sigmas, near, blur)
         ctx.mark_non_differentiable(visible)
-        return means2d, conics, depths, visible
+        return means2d, conics, depths, visible, means_cam, rot_cam
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, v_means2d, v_conics, v_depths, _v_visible):
+    def backward(ctx, v_means2d, v_conics, v_depths, _v_visible, v_means_cam, v_rot_cam):
         means, quats, scales, viewmat, K = ctx.saved_tensors
         width, height, support_sigmas, near, blur = ctx.meta
 
         def dense(v, shape):
             return torch.zeros(shape, dtype=means.dtype) if v is None else v.to(means.dtype).contiguous()
 
+        def optional(v):  # an unused output: an empty tensor tells the kernel to skip it
+            return means.new_zeros(0) if v is None or v.numel() == 0 else v.to(means.dtype).contiguous()
+
         n = means.shape[0]
         v_means, v_quats, v_scales = _ext().project_backward(
             means, quats, scales, viewmat, K, width, height, support_sigmas, near, blur,
             dense(v_means2d, (n, 2)), dense(v_conics, (n, 3)), dense(v_depths, (n,)),
-            torch.get_num_threads())
-        return v_means, v_quats, v_scales, None, None, None, None, None, None, None
+            optional(v_means_cam), optional(v_rot_cam), torch.get_num_threads())
+        return v_means, v_quats, v_scales, None, None, None, None, None, None, None, None
 
 
 def project_ellipsoids_fused(means, quats, scales, world_to_cam, K, width, height,
-                             support_sigmas: float = 3.0, near: float = 0.01, blur: float = 0.3):
-    """(means2d [N, 2], conics [N, 3], depths [N], visible [N] bool) exactly as
-    ``functional.projection.project_ellipsoids`` computes them; differentiable in means, quats
-    and scales. The camera-space centres and rotations it does not return are cheap to get in
-    torch for the visible rows when a kernel needs them."""
+                             support_sigmas: float = 3.0, near: float = 0.01, blur: float = 0.3,
+                             want_view: bool = False):
+    """(means2d [N, 2], conics [N, 3], depths [N], visible [N] bool, means_cam, rotmats_cam)
+    exactly as ``functional.projection.project_ellipsoids`` computes them; differentiable in
+    means, quats and scales. means_cam [N, 3] and rotmats_cam [N, 3, 3] (the learned kernel's
+    inputs) are filled only with ``want_view``, else empty."""
     dtype = torch.float64 if torch.float64 in (means.dtype, quats.dtype, scales.dtype) else torch.float32
     return _Project.apply(
         means.to(dtype).contiguous(), quats.to(dtype).contiguous(), scales.to(dtype).contiguous(),
         world_to_cam.detach().double().cpu(), K.detach().double().cpu(), int(width), int(height),
-        float(support_sigmas), float(near), float(blur),
+        float(support_sigmas), float(near), float(blur), bool(want_view),
     )
 
 

@@ -8,7 +8,7 @@ from torch import nn
 
 from ..backends import RasterOutput, rasterize, resolve_backend
 from ..colors import ColorModel, make_color_model
-from ..functional.projection import project_ellipsoids, quats_to_rotmats
+from ..functional.projection import project_ellipsoids
 from ..backends.fused_cpu import project_ellipsoids_fused, use_fused
 from ..kernels import Kernel, ViewContext, make_kernel
 
@@ -108,9 +108,10 @@ class SplatModel(nn.Module):
         K = camera.K.to(dev)
         scales = self.scales
         if fused:
-            means2d, conics, depths, visible = project_ellipsoids_fused(
+            means2d, conics, depths, visible, means_cam, rotmats_cam = project_ellipsoids_fused(
                 self.prims["means"], self.prims["quats"], scales, viewmat, K,
                 camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
+                want_view=self.kernel.needs_view,
             )
         else:
             proj = project_ellipsoids(
@@ -126,9 +127,9 @@ class SplatModel(nn.Module):
         rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, fused=fused)
         if not self.kernel.needs_view:
             view = ViewContext(None, None, None)
-        elif fused:  # the fused projection keeps these to itself: recompute the visible rows
-            means_cam = vis["means"] @ viewmat[:3, :3].T + viewmat[:3, 3]
-            view = ViewContext(means_cam, scales[idx], viewmat[:3, :3] @ quats_to_rotmats(vis["quats"]))
+        elif fused:
+            view = ViewContext(means_cam.index_select(0, idx), scales.index_select(0, idx),
+                               rotmats_cam.index_select(0, idx))
         else:
             view = ViewContext(proj.means_cam[idx], scales[idx], proj.rotmats_cam[idx])
         profile = self.kernel.profile(vis, view)

@@ -286,11 +286,17 @@ Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width
 template <typename S>
 std::vector<at::Tensor> project_forward_t(const at::Tensor& means, const at::Tensor& quats,
                                           const at::Tensor& scales, const Camera& cam,
-                                          double support_sigmas, int64_t threads) {
+                                          double support_sigmas, bool want_view,
+                                          int64_t threads) {
   const int64_t N = means.size(0);
   auto opt = means.options();
   at::Tensor means2d = at::empty({N, 2}, opt), conics = at::empty({N, 3}, opt),
              depths = at::empty({N}, opt), visible = at::empty({N}, opt.dtype(at::kBool));
+  // camera-space centres and rotations (the learned kernel's Phi_proj inputs), if asked for
+  at::Tensor means_cam = at::empty({want_view ? N : 0, 3}, opt);
+  at::Tensor rot_cam = at::empty({want_view ? N : 0, 3, 3}, opt);
+  S* mcam = want_view ? means_cam.data_ptr<S>() : nullptr;
+  S* rcam = want_view ? rot_cam.data_ptr<S>() : nullptr;
   const S* m = means.data_ptr<S>();
   const S* q = quats.data_ptr<S>();
   const S* s = scales.data_ptr<S>();
@@ -311,18 +317,23 @@ std::vector<at::Tensor> project_forward_t(const at::Tensor& means, const at::Ten
     const S v = S(cam.fy) * L.mc[1] / L.zc + S(cam.cy);
     m2[2 * n] = u, m2[2 * n + 1] = v;
     dp[n] = L.mc[2];
+    if (mcam) {
+      std::copy(L.mc, L.mc + 3, mcam + 3 * n);
+      std::copy(L.Rc, L.Rc + 9, rcam + 9 * n);
+    }
     const S hx = sig * std::sqrt(L.a), hy = sig * std::sqrt(L.c);
     vis[n] = (L.mc[2] > S(cam.near)) && (u + hx > 0) && (u - hx < S(cam.width)) &&
              (v + hy > 0) && (v - hy < S(cam.height)) && std::isfinite(u) && std::isfinite(v);
   }
-  return {means2d, conics, depths, visible};
+  return {means2d, conics, depths, visible, means_cam, rot_cam};
 }
 
 template <typename S>
 std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Tensor& quats,
                                            const at::Tensor& scales, const Camera& cam,
                                            const at::Tensor& v_means2d, const at::Tensor& v_conics,
-                                           const at::Tensor& v_depths, int64_t threads) {
+                                           const at::Tensor& v_depths, const at::Tensor& v_means_cam,
+                                           const at::Tensor& v_rot_cam, int64_t threads) {
   const int64_t N = means.size(0);
   auto opt = means.options();
   at::Tensor v_means = at::empty({N, 3}, opt), v_quats = at::empty({N, 4}, opt),
@@ -333,6 +344,8 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
   const S* gm2 = v_means2d.data_ptr<S>();
   const S* gco = v_conics.data_ptr<S>();
   const S* gdp = v_depths.data_ptr<S>();
+  const S* gmc = v_means_cam.numel() ? v_means_cam.data_ptr<S>() : nullptr;
+  const S* grc = v_rot_cam.numel() ? v_rot_cam.data_ptr<S>() : nullptr;
   S* vm = v_means.data_ptr<S>();
   S* vq = v_quats.data_ptr<S>();
   S* vs = v_scales.data_ptr<S>();
@@ -342,7 +355,12 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
   for (int64_t n = 0; n < N; ++n) {
     const S g0 = gco[3 * n] / s2, g1 = gco[3 * n + 1] / s2, g2 = gco[3 * n + 2] / s2;
     const S gu = gm2[2 * n], gv = gm2[2 * n + 1];
-    if (g0 == 0 && g1 == 0 && g2 == 0 && gu == 0 && gv == 0 && gdp[n] == 0) {
+    bool view_zero = true;
+    if (gmc)
+      for (int j = 0; j < 3; ++j) view_zero = view_zero && gmc[3 * n + j] == 0;
+    if (grc)
+      for (int j = 0; j < 9; ++j) view_zero = view_zero && grc[9 * n + j] == 0;
+    if (g0 == 0 && g1 == 0 && g2 == 0 && gu == 0 && gv == 0 && gdp[n] == 0 && view_zero) {
       std::fill(vm + 3 * n, vm + 3 * n + 3, S(0));
       std::fill(vq + 4 * n, vq + 4 * n + 4, S(0));
       std::fill(vs + 3 * n, vs + 3 * n + 3, S(0));
@@ -382,6 +400,8 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
       vs[3 * n + j] = vM[j] * L.Rc[j] + vM[3 + j] * L.Rc[3 + j] + vM[6 + j] * L.Rc[6 + j];
       for (int i = 0; i < 3; ++i) vRc[3 * i + j] = vM[3 * i + j] * sc[j];
     }
+    if (grc)
+      for (int j = 0; j < 9; ++j) vRc[j] += grc[9 * n + j];
     S G[9];  // dL/dR = Rw^T dL/dRc
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j)
@@ -410,6 +430,7 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
     if (L.tx_in) vx += vtx / zc, vzc += -vtx * L.mc[0] / zc2;
     if (L.ty_in) vy += vty / zc, vzc += -vty * L.mc[1] / zc2;
     S vz = gdp[n] + (L.mc[2] >= S(cam.near) ? vzc : S(0));
+    if (gmc) vx += gmc[3 * n], vy += gmc[3 * n + 1], vz += gmc[3 * n + 2];
     for (int j = 0; j < 3; ++j)
       vm[3 * n + j] = S(cam.R[j]) * vx + S(cam.R[3 + j]) * vy + S(cam.R[6 + j]) * vz;
   }
@@ -434,12 +455,12 @@ std::vector<at::Tensor> project_forward(const at::Tensor& means, const at::Tenso
                                         const at::Tensor& scales, const at::Tensor& viewmat,
                                         const at::Tensor& K, int64_t width, int64_t height,
                                         double support_sigmas, double near, double blur,
-                                        int64_t threads) {
+                                        bool want_view, int64_t threads) {
   check_project(means, quats, scales);
   Camera cam = make_camera(viewmat, K, width, height, support_sigmas, near, blur);
   if (means.scalar_type() == at::kDouble)
-    return project_forward_t<double>(means, quats, scales, cam, support_sigmas, threads);
-  return project_forward_t<float>(means, quats, scales, cam, support_sigmas, threads);
+    return project_forward_t<double>(means, quats, scales, cam, support_sigmas, want_view, threads);
+  return project_forward_t<float>(means, quats, scales, cam, support_sigmas, want_view, threads);
 }
 
 std::vector<at::Tensor> project_backward(const at::Tensor& means, const at::Tensor& quats,
@@ -447,18 +468,24 @@ std::vector<at::Tensor> project_backward(const at::Tensor& means, const at::Tens
                                          const at::Tensor& K, int64_t width, int64_t height,
                                          double support_sigmas, double near, double blur,
                                          const at::Tensor& v_means2d, const at::Tensor& v_conics,
-                                         const at::Tensor& v_depths, int64_t threads) {
+                                         const at::Tensor& v_depths, const at::Tensor& v_means_cam,
+                                         const at::Tensor& v_rot_cam, int64_t threads) {
   check_project(means, quats, scales);
   const auto dt = means.scalar_type();
+  const int64_t n = means.size(0);
   check_cpu_float(v_means2d, dt, "project: v_means2d");
   check_cpu_float(v_conics, dt, "project: v_conics");
   check_cpu_float(v_depths, dt, "project: v_depths");
+  check_cpu_float(v_means_cam, dt, "project: v_means_cam");
+  check_cpu_float(v_rot_cam, dt, "project: v_rot_cam");
+  TORCH_CHECK(v_means_cam.numel() == 0 || v_means_cam.numel() == 3 * n, "project: v_means_cam size");
+  TORCH_CHECK(v_rot_cam.numel() == 0 || v_rot_cam.numel() == 9 * n, "project: v_rot_cam size");
   Camera cam = make_camera(viewmat, K, width, height, support_sigmas, near, blur);
   if (dt == at::kDouble)
     return project_backward_t<double>(means, quats, scales, cam, v_means2d, v_conics, v_depths,
-                                      threads);
+                                      v_means_cam, v_rot_cam, threads);
   return project_backward_t<float>(means, quats, scales, cam, v_means2d, v_conics, v_depths,
-                                   threads);
+                                   v_means_cam, v_rot_cam, threads);
 }
 
 // ------------------------------------------------------------------------------------------
@@ -642,10 +669,11 @@ void register_fused_ops(pybind11::module_& m) {
         "ssim_backward(x, y, window, partials, v_mean, threads) -> v_x[C,H,W]");
   m.def("project_forward", &project_forward,
         "project_forward(means, quats, scales, viewmat, K, width, height, support_sigmas, near, "
-        "blur, threads) -> [means2d, conics, depths, visible]");
+        "blur, want_view, threads) -> [means2d, conics, depths, visible, means_cam, rot_cam]");
   m.def("project_backward", &project_backward,
         "project_backward(means, quats, scales, viewmat, K, width, height, support_sigmas, near, "
-        "blur, v_means2d, v_conics, v_depths, threads) -> [v_means, v_quats, v_scales]");
+        "blur, v_means2d, v_conics, v_depths, v_means_cam, v_rot_cam, threads) -> "
+        "[v_means, v_quats, v_scales]");
   m.def("sh_forward", &sh_forward, "sh_forward(sh0, sh_rest, dirs, degree, threads) -> rgb[N,3]");
   m.def("sh_backward", &sh_backward,
         "sh_backward(sh0, sh_rest, dirs, degree, v_rgb, need_dirs, threads) -> "
