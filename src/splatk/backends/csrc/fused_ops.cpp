@@ -37,6 +37,25 @@ void check_cpu_float(const at::Tensor& t, at::ScalarType dt, const char* what) {
 // and dS/dm_x, dS/de_xx, dS/de_xy are the three per-pixel maps saved for the backward pass:
 //   dL/dx = G*(w dS/dm_x) + 2 x G*(w dS/de_xx) + y G*(w dS/de_xy)   (G symmetric, zero padding)
 // ------------------------------------------------------------------------------------------
+// Vertical pass for output row i of channel c: m[s][j] = sum_k g[k] maps[s][c][i + k - R][j]
+// for each of the ``nmaps`` horizontally blurred maps (stride apart), zero padding.
+template <typename S>
+void blur_column_v(const S* maps, int64_t stride, int nmaps, int c, int i, int H, int W,
+                   const S* g, int R, std::vector<S>* m) {
+  for (int s = 0; s < nmaps; ++s) std::fill(m[s].begin(), m[s].end(), S(0));
+  const int64_t plane = int64_t(H) * W;
+  const int k0 = std::max(0, R - i), k1 = std::min(2 * R, R + H - 1 - i);
+  for (int k = k0; k <= k1; ++k) {
+    const int64_t src = int64_t(c) * plane + int64_t(i + k - R) * W;
+    const S gk = g[k];
+    for (int s = 0; s < nmaps; ++s) {
+      const S* h = maps + s * stride + src;
+      S* mv = m[s].data();
+      for (int j = 0; j < W; ++j) mv[j] += gk * h[j];
+    }
+  }
+}
+
 template <typename S>
 void blur_row_h(const S* in, S* out, S* pad, int W, const S* g, int R) {
   // pad has W + 2R entries; the borders stay zero (zero padding)
@@ -91,18 +110,7 @@ std::vector<at::Tensor> ssim_forward_t(const at::Tensor& x, const at::Tensor& y,
       for (auto& v : m) v.assign(W, S(0));
 #pragma omp for schedule(static)
       for (int64_t row = 0; row < int64_t(C) * H; ++row) {
-        const int c = int(row / H), i = int(row % H);
-        for (auto& v : m) std::fill(v.begin(), v.end(), S(0));
-        const int k0 = std::max(0, R - i), k1 = std::min(2 * R, R + H - 1 - i);
-        for (int k = k0; k <= k1; ++k) {
-          const int64_t src = int64_t(c) * plane + int64_t(i + k - R) * W;
-          const S gk = g[k];
-          for (int s = 0; s < 5; ++s) {
-            const S* h = HB + s * stride5 + src;
-            S* mv = m[s].data();
-            for (int j = 0; j < W; ++j) mv[j] += gk * h[j];
-          }
-        }
+        blur_column_v(HB, stride5, 5, int(row / H), int(row % H), H, W, g, R, m);
         const int64_t o = row * W;
         for (int j = 0; j < W; ++j) {
           const S mx = m[0][j], my = m[1][j];
@@ -156,18 +164,7 @@ at::Tensor ssim_backward_t(const at::Tensor& x, const at::Tensor& y, const at::T
     for (auto& v : m) v.assign(W, S(0));
 #pragma omp for schedule(static)
     for (int64_t row = 0; row < int64_t(C) * H; ++row) {
-      const int c = int(row / H), i = int(row % H);
-      for (auto& v : m) std::fill(v.begin(), v.end(), S(0));
-      const int k0 = std::max(0, R - i), k1 = std::min(2 * R, R + H - 1 - i);
-      for (int k = k0; k <= k1; ++k) {
-        const int64_t src = int64_t(c) * plane + int64_t(i + k - R) * W;
-        const S gk = g[k];
-        for (int s = 0; s < 3; ++s) {
-          const S* h = HB + s * stride3 + src;
-          S* mv = m[s].data();
-          for (int j = 0; j < W; ++j) mv[j] += gk * h[j];
-        }
-      }
+      blur_column_v(HB, stride3, 3, int(row / H), int(row % H), H, W, g, R, m);
       const int64_t o = row * W;
       for (int j = 0; j < W; ++j)
         VX[o + j] = w * (m[0][j] + 2 * X[o + j] * m[1][j] + Y[o + j] * m[2][j]);
