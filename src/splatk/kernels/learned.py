@@ -34,6 +34,7 @@ Gradients flow through these inputs into the geometry (means, scales, quats) as 
 """
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -67,7 +68,13 @@ def _use_bf16(precision: str, grad_enabled: bool) -> bool:
         return True
     if precision == "fp32" or grad_enabled:
         return False
-    try:  # "auto": only where the CPU multiplies bf16 natively (AVX-512 BF16, AMX)
+    return _cpu_has_bf16()  # "auto", no gradients
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_has_bf16() -> bool:
+    """Whether the CPU multiplies bf16 natively (AVX-512 BF16, AMX); asked once."""
+    try:
         return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
         return False

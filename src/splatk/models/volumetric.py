@@ -7,9 +7,9 @@ import torch
 from torch import nn
 
 from ..backends import RasterOutput, rasterize, resolve_backend
+from ..backends.fused_cpu import project_ellipsoids_fused, use_fused
 from ..colors import ColorModel, make_color_model
 from ..functional.projection import project_ellipsoids
-from ..backends.fused_cpu import project_ellipsoids_fused, use_fused
 from ..kernels import Kernel, ViewContext, make_kernel
 
 #: geometric per-primitive parameters every volumetric model has (raw, pre-activation)
@@ -127,15 +127,15 @@ class SplatModel(nn.Module):
         rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, fused=fused)
         if not self.kernel.needs_view:
             view = ViewContext(None, None, None)
-        elif fused:
+        else:
+            if not fused:
+                means_cam, rotmats_cam = proj.means_cam, proj.rotmats_cam
             view = ViewContext(means_cam.index_select(0, idx), scales.index_select(0, idx),
                                rotmats_cam.index_select(0, idx))
-        else:
-            view = ViewContext(proj.means_cam[idx], scales[idx], proj.rotmats_cam[idx])
         profile = self.kernel.profile(vis, view)
         out: RasterOutput = rasterize(
             means2d.index_select(0, idx), conics.index_select(0, idx), torch.sigmoid(vis["opacity_logits"]), rgb,
-            depths.detach()[idx], profile, camera.width, camera.height,
+            depths.detach().index_select(0, idx), profile, camera.width, camera.height,
             background=background.to(dev), backend=backend,
         )
         return RenderResult(out.colors, out.alphas, idx)

@@ -11,6 +11,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <initializer_list>
+#include <string>
+#include <utility>
 #include <vector>
 
 namespace splatk {
@@ -24,6 +27,14 @@ int nthreads(int64_t requested, int64_t work, int64_t min_work) {
 void check_cpu_float(const at::Tensor& t, at::ScalarType dt, const char* what) {
   TORCH_CHECK(t.device().is_cpu() && t.is_contiguous() && t.scalar_type() == dt, what,
               " must be a contiguous CPU tensor of the inputs' dtype");
+}
+
+// Every tensor a contiguous CPU float32 / float64 tensor of the first one's dtype.
+void check_float_inputs(const char* op,
+                        std::initializer_list<std::pair<const at::Tensor*, const char*>> inputs) {
+  const auto dt = inputs.begin()->first->scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, op, ": float32/64 only");
+  for (const auto& [t, name] : inputs) check_cpu_float(*t, dt, (std::string(op) + ": " + name).c_str());
 }
 
 // ------------------------------------------------------------------------------------------
@@ -175,14 +186,10 @@ at::Tensor ssim_backward_t(const at::Tensor& x, const at::Tensor& y, const at::T
 
 std::vector<at::Tensor> ssim_forward(const at::Tensor& x, const at::Tensor& y,
                                      const at::Tensor& window, bool need_grad, int64_t threads) {
-  const auto dt = x.scalar_type();
-  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "ssim: float32/64 only");
-  check_cpu_float(x, dt, "ssim: x");
-  check_cpu_float(y, dt, "ssim: y");
-  check_cpu_float(window, dt, "ssim: window");
+  check_float_inputs("ssim", {{&x, "x"}, {&y, "y"}, {&window, "window"}});
   TORCH_CHECK(x.dim() == 3 && x.sizes() == y.sizes(), "ssim: x and y must be [C, H, W] alike");
   TORCH_CHECK(window.numel() % 2 == 1, "ssim: odd window only");
-  if (dt == at::kDouble) return ssim_forward_t<double>(x, y, window, need_grad, threads);
+  if (x.scalar_type() == at::kDouble) return ssim_forward_t<double>(x, y, window, need_grad, threads);
   return ssim_forward_t<float>(x, y, window, need_grad, threads);
 }
 
@@ -435,11 +442,7 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
 }
 
 void check_project(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales) {
-  const auto dt = means.scalar_type();
-  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "project: float32/64 only");
-  check_cpu_float(means, dt, "project: means");
-  check_cpu_float(quats, dt, "project: quats");
-  check_cpu_float(scales, dt, "project: scales");
+  check_float_inputs("project", {{&means, "means"}, {&quats, "quats"}, {&scales, "scales"}});
   const int64_t n = means.size(0);
   TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "project: means must be [N, 3]");
   TORCH_CHECK(quats.dim() == 2 && quats.size(0) == n && quats.size(1) == 4,
@@ -470,11 +473,9 @@ std::vector<at::Tensor> project_backward(const at::Tensor& means, const at::Tens
   check_project(means, quats, scales);
   const auto dt = means.scalar_type();
   const int64_t n = means.size(0);
-  check_cpu_float(v_means2d, dt, "project: v_means2d");
-  check_cpu_float(v_conics, dt, "project: v_conics");
-  check_cpu_float(v_depths, dt, "project: v_depths");
-  check_cpu_float(v_means_cam, dt, "project: v_means_cam");
-  check_cpu_float(v_rot_cam, dt, "project: v_rot_cam");
+  check_float_inputs("project", {{&means, "means"}, {&v_means2d, "v_means2d"}, {&v_conics, "v_conics"},
+                                 {&v_depths, "v_depths"}, {&v_means_cam, "v_means_cam"},
+                                 {&v_rot_cam, "v_rot_cam"}});
   TORCH_CHECK(v_means_cam.numel() == 0 || v_means_cam.numel() == 3 * n, "project: v_means_cam size");
   TORCH_CHECK(v_rot_cam.numel() == 0 || v_rot_cam.numel() == 9 * n, "project: v_rot_cam size");
   Camera cam = make_camera(viewmat, K, width, height, support_sigmas, near, blur);
@@ -624,11 +625,7 @@ std::vector<at::Tensor> sh_backward_t(const at::Tensor& sh0, const at::Tensor& s
 
 void check_sh(const at::Tensor& sh0, const at::Tensor& sh_rest, const at::Tensor& dirs,
               int64_t degree) {
-  const auto dt = dirs.scalar_type();
-  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "sh: float32/64 only");
-  check_cpu_float(sh0, dt, "sh: sh0");
-  check_cpu_float(sh_rest, dt, "sh: sh_rest");
-  check_cpu_float(dirs, dt, "sh: dirs");
+  check_float_inputs("sh", {{&dirs, "dirs"}, {&sh0, "sh0"}, {&sh_rest, "sh_rest"}});
   const int64_t n = dirs.size(0);
   TORCH_CHECK(dirs.dim() == 2 && dirs.size(1) == 3, "sh: dirs must be [N, 3]");
   TORCH_CHECK(sh0.dim() == 3 && sh0.size(0) == n && sh0.size(1) == 1 && sh0.size(2) == 3,
@@ -651,7 +648,7 @@ std::vector<at::Tensor> sh_backward(const at::Tensor& sh0, const at::Tensor& sh_
                                     const at::Tensor& dirs, int64_t degree,
                                     const at::Tensor& v_rgb, bool need_dirs, int64_t threads) {
   check_sh(sh0, sh_rest, dirs, degree);
-  check_cpu_float(v_rgb, dirs.scalar_type(), "sh: v_rgb");
+  check_float_inputs("sh", {{&dirs, "dirs"}, {&v_rgb, "v_rgb"}});
   if (dirs.scalar_type() == at::kDouble)
     return sh_backward_t<double>(sh0, sh_rest, dirs, int(degree), v_rgb, need_dirs, threads);
   return sh_backward_t<float>(sh0, sh_rest, dirs, int(degree), v_rgb, need_dirs, threads);
