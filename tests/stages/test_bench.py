@@ -131,8 +131,13 @@ def test_short_runs_scale_schedules():
     cfg, notes = fit_config_for({"kernel": "learned", "k": 4}, {"iters": 3000})
     assert cfg.train.refine_start == 50 and cfg.train.refine_every == 10 and cfg.train.sh_degree_interval == 100
     assert cfg.kernel_options["freeze_iters"] == 200
+    assert cfg.train.scales_lr_mult == round(10**0.5, 3)  # sqrt(30k / 3k)
+    assert fit_config_for({}, {"iters": 100})[0].train.scales_lr_mult == 10.0  # capped
+    own, _ = fit_config_for({"scales_lr_mult": 2.0}, {"iters": 3000})
+    assert own.train.scales_lr_mult == 2.0  # a method's own setting wins
     full, _ = fit_config_for({"kernel": "learned"}, {"iters": 3000}, scale_schedules=False)
     assert full.train.refine_start == 500 and "freeze_iters" not in full.kernel_options
+    assert full.train.scales_lr_mult == 1.0
 
 
 def test_classify_flags_runs_that_end_below_their_start():
