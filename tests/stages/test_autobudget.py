@@ -105,3 +105,45 @@ def test_resume_mid_selection_continues_the_stages(scene, tmp_path):
     assert rep["iterations"] == 100
     assert [s["budget"] for s in rep["auto_budget"]["stages"]] == [50, 100, 200, 400]
     assert rep["auto_budget"]["chosen_budget"] == 400 and rep["auto_budget"]["prune"] is not None
+
+
+def test_paired_gain_is_grown_minus_a_control_trained_as_long(scene, tmp_path):
+    run = run_fit(scene, tmp_path / "run", _cfg(threshold=-100.0))
+    rep = json.loads((run / "fit.json").read_text())["auto_budget"]
+    assert rep["paired"] and rep["comparison_seconds"] > 0
+    first, *later = rep["stages"]
+    assert "control_psnr" not in first
+    for st in later:
+        assert st["gain_db"] == pytest.approx(st["holdout_psnr"] - st["control_psnr"])
+    # the stage's iterations are counted once: the control replays them
+    assert json.loads((run / "fit.json").read_text())["iterations"] == 100
+
+
+def test_unpaired_rule_compares_with_the_previous_stage(scene, tmp_path):
+    cfg = _cfg(threshold=-100.0)
+    cfg.auto_budget.paired = False
+    rep = json.loads((run_fit(scene, tmp_path / "run", cfg) / "fit.json").read_text())["auto_budget"]
+    st = rep["stages"]
+    assert not rep["paired"] and all("control_psnr" not in s for s in st)
+    assert st[1]["gain_db"] == pytest.approx(st[1]["holdout_psnr"] - st[0]["holdout_psnr"])
+
+
+def test_resume_inside_a_control_branch_gives_the_uninterrupted_result(scene, tmp_path):
+    cfg = _cfg(threshold=-100.0)
+    whole = json.loads((run_fit(scene, tmp_path / "whole", cfg) / "fit.json").read_text())["auto_budget"]
+    calls = {"n": 0}
+
+    def stop():  # stage 1 and the grown branch of stage 2 take ~42 checks: stop in the control
+        calls["n"] += 1
+        return calls["n"] >= 50
+
+    part = tmp_path / "part"
+    run_fit(scene, part, cfg, should_stop=stop)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)["auto_budget"]
+    assert state["branch"] == "control" and state["grown"] is not None
+    run_fit(scene, part, cfg, resume=True)
+    rep = json.loads((part / "fit.json").read_text())["auto_budget"]
+    assert [s["budget"] for s in rep["stages"]] == [s["budget"] for s in whole["stages"]]
+    for a, b in zip(rep["stages"][1:], whole["stages"][1:]):
+        assert a["control_psnr"] == pytest.approx(b["control_psnr"], abs=1e-3)
+        assert a["holdout_psnr"] == pytest.approx(b["holdout_psnr"], abs=1e-3)

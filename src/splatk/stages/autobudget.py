@@ -1,14 +1,21 @@
 """`splatk fit --budget auto`: choose the primitive budget from held-out train views.
 
 The run starts small (``start_fraction`` x the fit's budget) and trains in stages, each for
-``stage_share`` of the run (iterations, or the time budget). After a stage, the mean PSNR on
-train views held back from the optimiser (every ``holdout_every``-th train view; the test
-views are never looked at) decides: if the last doubling gained more than ``threshold_db`` the
-MCMC cap doubles and the *same* model trains on (warm start); otherwise the model goes back to
-its state before that doubling, whose budget is the chosen one, and trains at it for the rest of
-the run. While choosing, MCMC refines often enough for a doubling (15 growth steps of 5%) to fit
-in half a stage. The gain of a doubling therefore also includes one stage's worth of extra training:
-it is an upper bound on what the extra primitives bought.
+``stage_share`` of the run (iterations, or the time budget). A stage tries one doubling of the
+MCMC cap, judged by the mean PSNR on train views held back from the optimiser (every
+``holdout_every``-th train view; the test views are never looked at).
+
+The comparison is paired (``paired``, the default): from the same start, the stage is trained
+twice with the same iterations and schedules, once at the doubled cap ("grown") and once at
+the current one ("control"), and the gain is grown minus control. Comparing the grown model
+with the one before the stage instead would also count the stage's extra training as a gain
+of the primitives, and on short runs that alone exceeds any sensible threshold, so the budget
+would never stop growing (what the unpaired rule, ``paired: false``, does). If the doubling
+gained more than ``threshold_db`` the grown model trains on (warm start); otherwise the control
+model, already trained through the stage at the chosen budget, does, for the rest of the run.
+The price is one extra stage of training per comparison, reported as ``comparison_seconds``
+(under a time budget that time is not charged to the schedule). While choosing, MCMC refines
+often enough for a doubling (15 growth steps of 5%) to fit in half a stage.
 
 At the end, primitives that contribute nothing are pruned: opacity below ``prune_opacity``,
 or a blending weight ``T * alpha`` summed over every pixel of every train view below
@@ -46,6 +53,8 @@ class AutoBudgetConfig:
     stage_share: float = 0.125
     #: every n-th train view is held back from the optimiser while choosing (>= 2)
     holdout_every: int = 8
+    #: judge a doubling against a control trained through the same stage at the old cap
+    paired: bool = True
     #: give the held-out views back to the optimiser once the budget is chosen
     return_holdout: bool = True
     #: at the end, prune primitives with opacity below this
@@ -149,6 +158,10 @@ class AutoBudget:
         self.holdout_returned = False
         self.prune_report: dict | None = None
         self.refine_every_used: int | None = None
+        # paired comparison in progress: which branch is training, the grown branch's result
+        self.branch: str | None = None
+        self.grown: dict | None = None
+        self.comparison_seconds = 0.0
 
     @property
     def start_budget(self) -> int:
@@ -158,7 +171,8 @@ class AutoBudget:
         return {"stages": list(self.stages), "chosen": self.chosen, "reason": self.reason,
                 "refine_every_used": self.refine_every_used,
                 "snapshot": self.snapshot, "holdout_returned": self.holdout_returned,
-                "prune_report": self.prune_report}
+                "prune_report": self.prune_report, "branch": self.branch, "grown": self.grown,
+                "comparison_seconds": self.comparison_seconds}
 
     def load_state_dict(self, sd: dict) -> None:
         self.stages = list(sd["stages"])
@@ -168,6 +182,9 @@ class AutoBudget:
         self.holdout_returned = sd.get("holdout_returned", False)
         self.prune_report = sd.get("prune_report")
         self.refine_every_used = sd.get("refine_every_used")
+        self.branch = sd.get("branch")
+        self.grown = sd.get("grown")
+        self.comparison_seconds = sd.get("comparison_seconds", 0.0)
 
     def return_holdout(self, trainer: Trainer, holdout: list[Camera]) -> None:
         """Hand the held-out views to the optimiser (once the budget is chosen)."""
@@ -186,49 +203,26 @@ class AutoBudget:
     ) -> None:
         """Choose the budget, train the rest of the run at it, prune. Returns early (state kept
         for ``--resume``) when ``should_stop`` says so."""
-        backend = trainer.cfg.backend
-        bg = trainer.background.cpu()
         stopped = lambda: bool(should_stop and should_stop())  # noqa: E731
         mcmc = trainer.strategy.cfg
         refine_every = mcmc.refine_every
         if self.chosen is None:
             mcmc.refine_every = self.refine_every_used = self.selection_refine_every(trainer)
-        while self.chosen is None:
-            s = len(self.stages)
-            budget = self.budgets[s]
-            trainer.strategy.cfg.cap_max = budget
-            end = (s + 1) * self.cfg.stage_share
+
+        def train_stage(cap: int, end: float) -> bool:
+            """Train at MCMC cap ``cap`` until progress ``end``; False if stopped first."""
+            trainer.strategy.cfg.cap_max = cap
             trainer.run(on_step, lambda: trainer.progress() >= end - 1e-12 or stopped(),
                         on_checkpoint, checkpoint_every)
-            if stopped():
+            return not stopped()
+
+        while self.chosen is None:
+            s = len(self.stages)
+            paired = self.cfg.paired and s > 0
+            done = (self._paired_stage(trainer, holdout, s, train_stage) if paired
+                    else self._unpaired_stage(trainer, holdout, s, train_stage))
+            if not done:
                 return
-            value = render_psnr(trainer.model, holdout, bg, backend)
-            num = trainer.model.num_primitives
-            prev = self.stages[-1] if self.stages else None
-            gain = None if prev is None else value - prev["holdout_psnr"]
-            self.stages.append({"budget": budget, "num_primitives": num,
-                                "iteration": trainer.it, "holdout_psnr": value, "gain_db": gain})
-            # a doubling that MCMC could not carry out (stage shorter than the growth needs, or
-            # past the refine window) says nothing about the budget: stop there
-            if prev is not None and num < min(0.9 * budget, 1.5 * prev["num_primitives"]):
-                self.chosen = self.budgets[s - 1]
-                self.reason = (f"the model did not grow in the {budget} stage ({prev['num_primitives']} -> "
-                               f"{num} primitives: stage too short for refine_every, or past "
-                               f"refine_stop); back to the {self.chosen} model")
-                self._restore(trainer)
-            elif gain is not None and not (gain > self.cfg.threshold_db):  # NaN counts as no gain
-                self.chosen = self.budgets[s - 1]
-                self.reason = (f"doubling {self.budgets[s - 1]} -> {budget} gained {gain:.3f} dB "
-                               f"<= {self.cfg.threshold_db} dB; back to the {self.chosen} model")
-                self._restore(trainer)
-            elif trainer.done():
-                self.chosen = budget
-                self.reason = "the run ended before the gain fell below the threshold"
-            elif s == len(self.budgets) - 1:
-                self.chosen = budget
-                self.reason = "largest budget tried (max_factor / stage count)"
-            else:
-                self.snapshot = trainer.state_dict()
         self.snapshot = None
         mcmc.refine_every = refine_every
         trainer.strategy.cfg.cap_max = self.chosen
@@ -239,6 +233,88 @@ class AutoBudget:
             return
         if self.prune_report is None:
             self.prune_report = self.prune(trainer, holdout)
+
+    def _unpaired_stage(self, trainer: Trainer, holdout, s: int, train_stage) -> bool:
+        """One stage judged against the previous stage's result (``paired: false``)."""
+        budget = self.budgets[s]
+        if not train_stage(budget, (s + 1) * self.cfg.stage_share):
+            return False
+        value = render_psnr(trainer.model, holdout, trainer.background.cpu(), trainer.cfg.backend)
+        num = trainer.model.num_primitives
+        prev = self.stages[-1] if self.stages else None
+        gain = None if prev is None else value - prev["holdout_psnr"]
+        self.stages.append({"budget": budget, "num_primitives": num,
+                            "iteration": trainer.it, "holdout_psnr": value, "gain_db": gain})
+        if self._stop_growing(prev, num, gain, s):
+            self._restore(trainer)  # back to the model before the doubling
+        else:
+            self._grown_on(trainer, s)
+        return True
+
+    def _paired_stage(self, trainer: Trainer, holdout, s: int, train_stage) -> bool:
+        """One stage trained twice from the same start: doubled cap vs the current cap."""
+        budget, end = self.budgets[s], (s + 1) * self.cfg.stage_share
+        bg, backend = trainer.background.cpu(), trainer.cfg.backend
+        if self.branch != "control":
+            self.branch = "grown"
+            if not train_stage(budget, end):
+                return False
+            value = render_psnr(trainer.model, holdout, bg, backend)
+            self.grown = {"holdout_psnr": value, "num_primitives": trainer.model.num_primitives,
+                          "seconds": trainer.elapsed - self.snapshot["elapsed"],
+                          "state": trainer.state_dict()}
+            self.branch = "control"
+            self._restore(trainer, keep_clock=False)  # the control starts where the grown did
+        if not train_stage(self.budgets[s - 1], end):
+            return False
+        control = render_psnr(trainer.model, holdout, bg, backend)
+        grown, self.grown, self.branch = self.grown, None, None
+        t_control = trainer.elapsed - self.snapshot["elapsed"]
+        gain = grown["holdout_psnr"] - control
+        prev = self.stages[-1]
+        self.stages.append({"budget": budget, "num_primitives": grown["num_primitives"],
+                            "iteration": trainer.it, "holdout_psnr": grown["holdout_psnr"],
+                            "control_psnr": control, "gain_db": gain})
+        if self._stop_growing(prev, grown["num_primitives"], gain, s):
+            self.comparison_seconds += grown["seconds"]  # the control trains on
+        else:
+            self.comparison_seconds += t_control
+            events = list(trainer.events)
+            trainer.load_state_dict(grown["state"])  # its clock: the stage trained once
+            trainer.events = events
+            trainer._snapshot = None  # a NaN rollback must not return to the control model
+            self._grown_on(trainer, s)
+        return True
+
+    def _stop_growing(self, prev: dict | None, num: int, gain: float | None, s: int) -> bool:
+        """Decide after stage ``s``; True when the previous budget is chosen."""
+        budget = self.budgets[s]
+        # a doubling that MCMC could not carry out (stage shorter than the growth needs, or
+        # past the refine window) says nothing about the budget: stop there
+        if prev is not None and num < min(0.9 * budget, 1.5 * prev["num_primitives"]):
+            self.chosen = self.budgets[s - 1]
+            self.reason = (f"the model did not grow in the {budget} stage ({prev['num_primitives']} -> "
+                           f"{num} primitives: stage too short for refine_every, or past "
+                           f"refine_stop); back to the {self.chosen} model")
+            return True
+        if gain is not None and not (gain > self.cfg.threshold_db):  # NaN counts as no gain
+            self.chosen = self.budgets[s - 1]
+            vs = "its control" if self.cfg.paired else "the previous stage"
+            self.reason = (f"doubling {self.budgets[s - 1]} -> {budget} gained {gain:.3f} dB over {vs} "
+                           f"<= {self.cfg.threshold_db} dB; back to the {self.chosen} budget")
+            return True
+        return False
+
+    def _grown_on(self, trainer: Trainer, s: int) -> None:
+        """The doubling of stage ``s`` is kept: stop if nothing is left to try, else go on."""
+        if trainer.done():
+            self.chosen = self.budgets[s]
+            self.reason = "the run ended before the gain fell below the threshold"
+        elif s == len(self.budgets) - 1:
+            self.chosen = self.budgets[s]
+            self.reason = "largest budget tried (max_factor / stage count)"
+        else:
+            self.snapshot = trainer.state_dict()
 
     def selection_refine_every(self, trainer: Trainer) -> int:
         """MCMC grows 5% per refine step, so a doubling takes 15 of them; while choosing, refine
@@ -251,11 +327,14 @@ class AutoBudget:
         stage_iters = self.cfg.stage_share * trainer.cfg.iters
         return max(1, min(every, int(stage_iters / 2 / steps)))
 
-    def _restore(self, trainer: Trainer) -> None:
-        """Back to the end of the previous stage; the clock and the event log keep running."""
+    def _restore(self, trainer: Trainer, keep_clock: bool = True) -> None:
+        """Back to the end of the previous stage; the event log keeps running, and so does the
+        clock unless ``keep_clock`` is False (a paired control replays the stage's schedule)."""
         elapsed, events = trainer.elapsed, list(trainer.events)
         trainer.load_state_dict(self.snapshot)
-        trainer.elapsed, trainer.events = elapsed, events
+        trainer.events = events
+        if keep_clock:
+            trainer.elapsed = elapsed
         trainer._snapshot = self.snapshot  # a NaN rollback must not return to the discarded model
 
     def prune(self, trainer: Trainer, holdout: list[Camera]) -> dict:
@@ -291,6 +370,8 @@ class AutoBudget:
             "holdout_returned_to_training": self.holdout_returned,
             "stages": self.stages,
             "stopped_because": self.reason,
+            "paired": self.cfg.paired,
+            "comparison_seconds": round(self.comparison_seconds, 3),
             "prune": self.prune_report,
             "settings": {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
                          for k, v in vars(self.cfg).items()},
