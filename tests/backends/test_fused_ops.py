@@ -165,3 +165,40 @@ def test_cpu_render_matches_torch_render(kernel):
     assert _rel(images[0], images[1]) < 1e-5
     for k in grads[0]:
         assert _rel(grads[0][k], grads[1][k]) < 1e-3, k
+    with torch.no_grad():  # eval renders (the learned kernel's native encode / decode)
+        a, b = (m.render(cam, bg, sh_degree=3, backend=be).image for be in ("cpu", "torch"))
+    assert _rel(a, b) < 1e-5
+
+
+@pytest.mark.parametrize("inputs", ["z,mu,s,R", "mu,s", "z", "R,z"])
+def test_learned_encode_and_decode_match_torch(inputs):
+    """Renders without gradients take Phi_proj's inputs and Phi_dec's samples from native
+    passes; they equal the torch ops (kernels/learned.py) to float tolerance."""
+    from splatk.kernels import ViewContext, make_kernel
+
+    g = torch.Generator().manual_seed(1)
+    m = 300
+    mu = torch.randn(m, 3, generator=g) * 2 + torch.tensor([0, 0, 5.0])
+    mu[0] = 0.0  # rho clamped at 1e-12
+    view = ViewContext(mu, torch.rand(m, 3, generator=g) * 0.3 + 1e-4,
+                       torch.linalg.qr(torch.randn(m, 3, 3, generator=g))[0])
+    for k in (2, 4, 8):
+        kern = make_kernel("learned", k=k, proj_inputs=inputs, weights="none", proj_precision="fp32")
+        z = torch.randn(m, 5, generator=g) if "z" in inputs else None
+        with torch.no_grad():
+            x_ref = kern.encode(z, view)
+            fused = ViewContext(view.means_cam, view.scales, view.rotmats_cam, fused=True)
+            x = kern.encode(z, fused)
+            assert x.shape == x_ref.shape and _rel(x, x_ref) < 1e-6
+            z2d = kern.project(z, view)
+            d_ref = kern.decode(z2d, kern.radii2)
+            d = kern.profile({"z3d": z} if z is not None else {}, fused).params
+            assert d.shape == (m, k) and (d - d_ref).abs().max() < 1e-6
+
+
+def test_learned_fused_ops_refuse_gradients():
+    from splatk.backends.fused_cpu import learned_encode_fused
+
+    mu = torch.rand(4, 3, requires_grad=True)
+    with pytest.raises(RuntimeError, match="no backward"):
+        learned_encode_fused(None, mu, torch.rand(4, 3), torch.rand(4, 3, 3), True, True, True, 2.5, 5.0, 2.5)

@@ -141,3 +141,26 @@ def eval_sh_fused(sh0: torch.Tensor, sh_rest: torch.Tensor, dirs: torch.Tensor, 
     dtype = torch.float64 if torch.float64 in (sh0.dtype, sh_rest.dtype, dirs.dtype) else torch.float32
     return _SHColor.apply(sh0.to(dtype).contiguous(), sh_rest.to(dtype).contiguous(),
                           dirs.to(dtype).contiguous(), int(degree))
+
+
+# ---- the learned kernel around Phi_proj (renders without gradients) ----------------------------
+def learned_encode_fused(z3d, means_cam, scales, rotmats_cam, use_mu: bool, use_s: bool, use_R: bool,
+                         dist_scale: float, angle_shift: float, angle_scale: float) -> torch.Tensor:
+    """``LearnedKernel.encode`` in one native pass: [M, D] Phi_proj inputs. No gradients."""
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                       for t in (z3d, means_cam, scales, rotmats_cam)):
+        raise RuntimeError("learned_encode_fused has no backward; call it under torch.no_grad()")
+    c = lambda t: None if t is None else t.float().contiguous()  # noqa: E731
+    return _ext().learned_encode(c(z3d), c(means_cam), c(scales), c(rotmats_cam), use_mu, use_s, use_R,
+                                 dist_scale, angle_shift, angle_scale, torch.get_num_threads())
+
+
+def learned_decode_fused(z2d, layers, radii2, slope: float) -> torch.Tensor:
+    """``LearnedKernel.decode`` (with the sigmoid) in one native pass: [M, P]. ``layers`` are
+    Phi_dec's three ``nn.Linear``. No gradients."""
+    if torch.is_grad_enabled() and (z2d.requires_grad or any(p.requires_grad for l in layers for p in l.parameters())):
+        raise RuntimeError("learned_decode_fused has no backward; call it under torch.no_grad()")
+    (w1, b1), (w2, b2), (w3, b3) = [(l.weight.detach().float().contiguous(), l.bias.detach().float().contiguous())
+                                    for l in layers]
+    return _ext().learned_decode(z2d.float().contiguous(), w1, b1, w2, b2, w3, b3,
+                                 radii2.float().contiguous(), slope, torch.get_num_threads())

@@ -20,11 +20,14 @@ class ViewContext:
         means_cam: [M, 3] camera-space centres.
         scales: [M, 3] activated scales.
         rotmats_cam: [M, 3, 3] primitive rotations in camera space.
+        fused: the render runs on the ``cpu`` backend, so kernels may use the fused native
+            ops (``backends.fused_cpu``) too; False keeps them pure torch.
     """
 
     means_cam: torch.Tensor | None
     scales: torch.Tensor | None
     rotmats_cam: torch.Tensor | None
+    fused: bool = False
 
 
 class Kernel(nn.Module):

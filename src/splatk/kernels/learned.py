@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backends import Profile
+from ..backends.fused_cpu import learned_decode_fused, learned_encode_fused
 from .base import Kernel, ViewContext, register_kernel
 
 #: the shipped pretrained networks (cosine target, default architecture), made by
@@ -322,6 +323,11 @@ class LearnedKernel(Kernel):
     def encode(self, z3d: torch.Tensor | None, view: ViewContext) -> torch.Tensor:
         """Phi_proj's input [M, D] (see the module docstring), built with one cat."""
         mu = view.means_cam
+        if view.fused and not torch.is_grad_enabled():  # one native pass (same values)
+            return learned_encode_fused(
+                z3d if "z" in self.inputs else None, mu, view.scales, view.rotmats_cam,
+                "mu" in self.inputs, "s" in self.inputs, "R" in self.inputs,
+                LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE)
         parts = []
         if "z" in self.inputs:
             parts.append(z3d)
@@ -364,6 +370,9 @@ class LearnedKernel(Kernel):
         """Samples d_i = Phi_dec(r_i^2, z2d) at r_i = i / (k - 1) (paper Eq. 7): table [M, k]."""
         self._check_weights()
         z2d = self.project(prims.get("z3d"), view)
+        if view.fused and not torch.is_grad_enabled():  # one native pass (same values)
+            first, _, mid, _, last = self.dec
+            return Profile("table", learned_decode_fused(z2d, (first, mid, last), self.radii2, LEAKY_SLOPE))
         return Profile("table", self.decode(z2d, self.radii2))
 
     # ---- export to plain Gaussians ----------------------------------------------------

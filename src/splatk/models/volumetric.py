@@ -131,7 +131,7 @@ class SplatModel(nn.Module):
             if not fused:
                 means_cam, rotmats_cam = proj.means_cam, proj.rotmats_cam
             view = ViewContext(means_cam.index_select(0, idx), scales.index_select(0, idx),
-                               rotmats_cam.index_select(0, idx))
+                               rotmats_cam.index_select(0, idx), fused=fused)
         profile = self.kernel.profile(vis, view)
         out: RasterOutput = rasterize(
             means2d.index_select(0, idx), conics.index_select(0, idx), torch.sigmoid(vis["opacity_logits"]), rgb,

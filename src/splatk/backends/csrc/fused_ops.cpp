@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <cmath>
 #include <initializer_list>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -654,6 +655,132 @@ std::vector<at::Tensor> sh_backward(const at::Tensor& sh0, const at::Tensor& sh_
   return sh_backward_t<float>(sh0, sh_rest, dirs, int(degree), v_rgb, need_dirs, threads);
 }
 
+
+// ------------------------------------------------------------------------------------------
+// The learned kernel's per-primitive work around Phi_proj, for renders without gradients
+// (kernels/learned.py is the specification). Both are a dozen tiny torch ops on [M, <= 21]
+// tensors, memory bound; here each is one pass per primitive.
+// ------------------------------------------------------------------------------------------
+// Phi_proj's input rows: [z | mu_cam / rho, log(rho) / dist_scale | (log(s) - log(rho) + shift)
+// / angle_scale | R_cam row-major], each group present when asked for (z when given).
+template <typename S>
+void learned_encode_t(const at::Tensor& z, const at::Tensor& mu, const at::Tensor& sc,
+                      const at::Tensor& rot, bool use_mu, bool use_s, bool use_R,
+                      double dist_scale, double angle_shift, double angle_scale, at::Tensor& x,
+                      int64_t threads) {
+  const int64_t M = mu.size(0), D = x.size(1);
+  const int64_t L = z.defined() ? z.size(1) : 0;
+  const S* pz = z.defined() ? z.data_ptr<S>() : nullptr;
+  const S* pm = mu.data_ptr<S>();
+  const S* ps = sc.data_ptr<S>();
+  const S* pr = rot.data_ptr<S>();
+  S* px = x.data_ptr<S>();
+  const S inv_dist = S(1.0 / dist_scale), inv_angle = S(1.0 / angle_scale), shift = S(angle_shift);
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel for num_threads(nthreads(threads, M, 4096)) schedule(static)
+  for (int64_t n = 0; n < M; ++n) {
+    S* row = px + n * D;
+    for (int64_t l = 0; l < L; ++l) *row++ = pz[n * L + l];
+    const S* m = pm + 3 * n;
+    const S rho = std::max(std::sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]), S(1e-12));
+    const S log_rho = std::log(rho);
+    if (use_mu) {
+      for (int k = 0; k < 3; ++k) *row++ = m[k] / rho;
+      *row++ = log_rho * inv_dist;
+    }
+    if (use_s)
+      for (int k = 0; k < 3; ++k) *row++ = (std::log(ps[3 * n + k]) - log_rho + shift) * inv_angle;
+    if (use_R)
+      for (int k = 0; k < 9; ++k) *row++ = pr[9 * n + k];
+  }
+}
+
+at::Tensor learned_encode(const std::optional<at::Tensor>& z, const at::Tensor& means_cam,
+                          const at::Tensor& scales, const at::Tensor& rotmats_cam, bool use_mu,
+                          bool use_s, bool use_R, double dist_scale, double angle_shift,
+                          double angle_scale, int64_t threads) {
+  check_float_inputs("learned_encode",
+                     {{&means_cam, "means_cam"}, {&scales, "scales"}, {&rotmats_cam, "rotmats_cam"}});
+  const int64_t M = means_cam.size(0);
+  TORCH_CHECK(means_cam.dim() == 2 && means_cam.size(1) == 3 && scales.sizes() == means_cam.sizes() &&
+                  rotmats_cam.numel() == 9 * M,
+              "learned_encode: means_cam, scales [M, 3] and rotmats_cam [M, 3, 3]");
+  at::Tensor zz;
+  if (z.has_value() && z->defined()) {
+    zz = *z;
+    check_float_inputs("learned_encode", {{&means_cam, "means_cam"}, {&zz, "z"}});
+    TORCH_CHECK(zz.dim() == 2 && zz.size(0) == M, "learned_encode: z must be [M, L]");
+  }
+  const int64_t D = (zz.defined() ? zz.size(1) : 0) + (use_mu ? 4 : 0) + (use_s ? 3 : 0) + (use_R ? 9 : 0);
+  TORCH_CHECK(D > 0, "learned_encode: no inputs");
+  at::Tensor x = at::empty({M, D}, means_cam.options());
+  if (means_cam.scalar_type() == at::kDouble)
+    learned_encode_t<double>(zz, means_cam, scales, rotmats_cam, use_mu, use_s, use_R, dist_scale,
+                             angle_shift, angle_scale, x, threads);
+  else
+    learned_encode_t<float>(zz, means_cam, scales, rotmats_cam, use_mu, use_s, use_R, dist_scale,
+                            angle_shift, angle_scale, x, threads);
+  return x;
+}
+
+// Phi_dec at P radii per primitive: d[n, p] = sigmoid(w3 . h2 + b3), h2 = lrelu(W2 h1 + b2),
+// h1 = lrelu(W1[:, 1:] z2d + b1 + r2[p] W1[:, 0]) (the same order of operations as phi_dec).
+template <typename S>
+void learned_decode_t(const at::Tensor& z2d, const at::Tensor& w1, const at::Tensor& b1,
+                      const at::Tensor& w2, const at::Tensor& b2, const at::Tensor& w3,
+                      const at::Tensor& b3, const at::Tensor& r2, double slope, at::Tensor& out,
+                      int64_t threads) {
+  const int64_t M = z2d.size(0), L = z2d.size(1), W = w1.size(0), V = w2.size(0), P = r2.size(0);
+  const S *pz = z2d.data_ptr<S>(), *pw1 = w1.data_ptr<S>(), *pb1 = b1.data_ptr<S>();
+  const S *pw2 = w2.data_ptr<S>(), *pb2 = b2.data_ptr<S>(), *pw3 = w3.data_ptr<S>();
+  const S b3v = b3.data_ptr<S>()[0], sl = S(slope);
+  const S* pr = r2.data_ptr<S>();
+  S* po = out.data_ptr<S>();
+  auto lrelu = [sl](S v) { return v >= S(0) ? v : v * sl; };
+  pybind11::gil_scoped_release nogil;
+#pragma omp parallel for num_threads(nthreads(threads, M, 4096)) schedule(static)
+  for (int64_t n = 0; n < M; ++n) {
+    S a[64], h1[64], h2[64];
+    const S* z = pz + n * L;
+    for (int64_t w = 0; w < W; ++w) {
+      S acc = S(0);
+      for (int64_t l = 0; l < L; ++l) acc += z[l] * pw1[w * (L + 1) + 1 + l];
+      a[w] = acc + pb1[w];
+    }
+    for (int64_t p = 0; p < P; ++p) {
+      for (int64_t w = 0; w < W; ++w) h1[w] = lrelu(a[w] + pr[p] * pw1[w * (L + 1)]);
+      S o = S(0);
+      for (int64_t v = 0; v < V; ++v) {
+        S acc = S(0);
+        for (int64_t w = 0; w < W; ++w) acc += h1[w] * pw2[v * W + w];
+        h2[v] = lrelu(acc + pb2[v]);
+        o += h2[v] * pw3[v];
+      }
+      po[n * P + p] = S(1) / (S(1) + std::exp(-(o + b3v)));
+    }
+  }
+}
+
+at::Tensor learned_decode(const at::Tensor& z2d, const at::Tensor& w1, const at::Tensor& b1,
+                          const at::Tensor& w2, const at::Tensor& b2, const at::Tensor& w3,
+                          const at::Tensor& b3, const at::Tensor& radii2, double slope,
+                          int64_t threads) {
+  check_float_inputs("learned_decode", {{&z2d, "z2d"}, {&w1, "w1"}, {&b1, "b1"}, {&w2, "w2"},
+                                        {&b2, "b2"}, {&w3, "w3"}, {&b3, "b3"}, {&radii2, "radii2"}});
+  const int64_t M = z2d.size(0), L = z2d.size(1), W = w1.size(0), V = w2.size(0);
+  TORCH_CHECK(z2d.dim() == 2 && w1.dim() == 2 && w1.size(1) == L + 1 && b1.numel() == W &&
+                  w2.dim() == 2 && w2.size(1) == W && b2.numel() == V && w3.numel() == V &&
+                  b3.numel() == 1 && radii2.dim() == 1,
+              "learned_decode: weight shapes do not match z2d [M, L]");
+  TORCH_CHECK(W <= 64 && V <= 64, "learned_decode: hidden width above 64");
+  at::Tensor out = at::empty({M, radii2.size(0)}, z2d.options());
+  if (z2d.scalar_type() == at::kDouble)
+    learned_decode_t<double>(z2d, w1, b1, w2, b2, w3, b3, radii2, slope, out, threads);
+  else
+    learned_decode_t<float>(z2d, w1, b1, w2, b2, w3, b3, radii2, slope, out, threads);
+  return out;
+}
+
 }  // namespace
 
 void register_fused_ops(pybind11::module_& m) {
@@ -669,6 +796,11 @@ void register_fused_ops(pybind11::module_& m) {
         "blur, v_means2d, v_conics, v_depths, v_means_cam, v_rot_cam, threads) -> "
         "[v_means, v_quats, v_scales]");
   m.def("sh_forward", &sh_forward, "sh_forward(sh0, sh_rest, dirs, degree, threads) -> rgb[N,3]");
+  m.def("learned_encode", &learned_encode,
+        "learned_encode(z?, means_cam, scales, rotmats_cam, use_mu, use_s, use_R, dist_scale, "
+        "angle_shift, angle_scale, threads) -> x[M, D] (no gradients)");
+  m.def("learned_decode", &learned_decode,
+        "learned_decode(z2d, w1, b1, w2, b2, w3, b3, radii2, slope, threads) -> d[M, P] (no gradients)");
   m.def("sh_backward", &sh_backward,
         "sh_backward(sh0, sh_rest, dirs, degree, v_rgb, need_dirs, threads) -> "
         "[v_sh0, v_sh_rest, v_dirs]");
