@@ -135,6 +135,11 @@ def test_short_runs_scale_schedules():
     assert fit_config_for({}, {"iters": 100})[0].train.scales_lr_mult == 10.0  # capped
     own, _ = fit_config_for({"scales_lr_mult": 2.0}, {"iters": 3000})
     assert own.train.scales_lr_mult == 2.0  # a method's own setting wins
+    assert cfg.kernel_options["z3d_lr"] == pytest.approx(1e-3) and cfg.kernel_options["net_lr_mult"] == 10.0
+    nopre, _ = fit_config_for({"kernel": "learned", "weights": None}, {"iters": 15000})
+    assert nopre.kernel_options["net_lr_mult"] == 10.0  # the no-pretraining x10, not x20
+    mine, _ = fit_config_for({"kernel": "learned", "kernel_options": {"z3d_lr": 0.0}}, {"iters": 3000})
+    assert mine.kernel_options["z3d_lr"] == 0.0
     full, _ = fit_config_for({"kernel": "learned"}, {"iters": 3000}, scale_schedules=False)
     assert full.train.refine_start == 500 and "freeze_iters" not in full.kernel_options
     assert full.train.scales_lr_mult == 1.0

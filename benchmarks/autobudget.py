@@ -1,0 +1,101 @@
+"""`--budget auto` against its targets (issue #6), on real scenes.
+
+    python benchmarks/autobudget.py [--scenes lego,fox,cup,bonsai] [--data ../shared/data]
+        [--out benchmarks/results/autobudget] [--iters 4000] [--downscale 4] [--threads 2]
+
+Per scene, through `splatk bench` (so runs are resumable and each writes its own JSON):
+
+1. a Gaussian run with ``--budget auto`` (reference budget: the fit default, 100,000);
+2. a Gaussian run with a fixed budget of 4x the budget auto chose.
+
+Targets: the auto run's test PSNR within 0.2 dB of the 4x run, and its footprint at most half
+that of the fixed default budget (100,000 primitives; MCMC fills its cap, so that footprint is
+100,000 x bytes per primitive). Lego runs at half the downscale of the photo scenes (it is
+400 x 400). Prints a table and writes OUT/autobudget.json.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+DEFAULT_BUDGET = 100_000  # TrainConfig.budget
+PSNR_TOL_DB = 0.2
+MEMORY_SHARE = 0.5
+
+
+def bench(scene: Path, out: Path, budget: str, args) -> dict:
+    ds = max(1.0, args.downscale / 2) if scene.name == "lego" else args.downscale
+    cmd = ["splatk", "bench", str(scene), "--out", str(out), "--kernel", "gaussian", "--budget", budget,
+           "--iters", str(args.iters), "--downscale", str(ds), "--threads", str(args.threads),
+           "--metrics", "psnr,ssim", "-q"]
+    print("$", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True)
+    tag = "bauto" if budget == "auto" else f"b{budget}"
+    (path,) = glob.glob(str(out / "results" / f"{scene.name}__gaussian-sh-{tag}*.json"))
+    row = json.loads(Path(path).read_text())
+    if row.get("status") != "ok":
+        raise SystemExit(f"{path}: run {row.get('status')}: {row.get('error')}")
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="lego,fox,cup,bonsai")
+    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "autobudget"))
+    ap.add_argument("--iters", type=int, default=4000)
+    ap.add_argument("--downscale", type=float, default=4.0)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    out = Path(args.out)
+    rows = []
+    for name in args.scenes.split(","):
+        scene = Path(args.data) / name
+        if not scene.is_dir():
+            print(f"{scene}: not found, skipped", file=sys.stderr)
+            continue
+        auto = bench(scene, out, "auto", args)
+        report = json.loads((Path(auto["run"]) / "fit.json").read_text())["auto_budget"]
+        chosen = int(report["chosen_budget"])
+        ref = bench(scene, out, str(4 * chosen), args)
+        per_prim = auto["footprint_mb"] / max(1, auto["num_primitives"])
+        default_mb = DEFAULT_BUDGET * per_prim
+        row = {
+            "scene": name, "chosen_budget": chosen, "num_primitives": auto["num_primitives"],
+            "stopped_because": report["stopped_because"],
+            "stages": [{k: s.get(k) for k in ("budget", "num_primitives", "holdout_psnr", "control_psnr", "gain_db")}
+                       for s in report["stages"]],
+            "auto_psnr": auto["psnr"], "auto_footprint_mb": auto["footprint_mb"],
+            "auto_train_seconds": auto["train_seconds"], "comparison_seconds": report.get("comparison_seconds"),
+            "x4_budget": 4 * chosen, "x4_psnr": ref["psnr"], "x4_footprint_mb": ref["footprint_mb"],
+            "x4_train_seconds": ref["train_seconds"],
+            "default_budget_footprint_mb": default_mb,
+        }
+        row["psnr_gap_db"] = row["x4_psnr"] - row["auto_psnr"]
+        row["memory_share_of_default"] = row["auto_footprint_mb"] / default_mb
+        row["meets_psnr"] = row["psnr_gap_db"] <= PSNR_TOL_DB
+        row["meets_memory"] = row["memory_share_of_default"] <= MEMORY_SHARE
+        rows.append(row)
+    result = {"iters": args.iters, "downscale": args.downscale, "threads": args.threads,
+              "targets": {"psnr_within_db_of_4x": PSNR_TOL_DB, "max_share_of_default_memory": MEMORY_SHARE,
+                          "default_budget": DEFAULT_BUDGET},
+              "scenes": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "autobudget.json").write_text(json.dumps(result, indent=2))
+    print(f"\n| scene | chosen | primitives | auto PSNR | 4x PSNR | gap dB | MB | share of default | targets |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
+    for r in rows:
+        ok = "both met" if r["meets_psnr"] and r["meets_memory"] else (
+            "PSNR missed" if r["meets_memory"] else ("memory missed" if r["meets_psnr"] else "both missed"))
+        print(f"| {r['scene']} | {r['chosen_budget']:,} | {r['num_primitives']:,} | {r['auto_psnr']:.2f} | "
+              f"{r['x4_psnr']:.2f} | {r['psnr_gap_db']:+.2f} | {r['auto_footprint_mb']:.2f} | "
+              f"{r['memory_share_of_default']:.2f} | {ok} |")
+    print(f"\nwrote {out / 'autobudget.json'}")
+
+
+if __name__ == "__main__":
+    main()
