@@ -148,3 +148,25 @@ def test_native_matches_reference_when_pixels_saturate(kind, grid):
     for name, gref in ref_g.items():
         torch.testing.assert_close(nat_g[name].double(), gref, rtol=tol["grad_rtol"],
                                    atol=tol["grad_atol"] * gref.abs().max().item(), msg=name)
+
+
+def test_bboxes_hold_the_projected_disk_tightly():
+    from splatk.backends.planar_cpu import planar_bboxes
+    from splatk.backends.planar_torch import splat_homographies
+
+    scene, _ = random_scene(40, seed=9)
+    width, height = 400, 320  # no clipping: every disk lies inside the image
+    K = torch.tensor([[100.0, 0, width / 2], [0, 100.0, height / 2], [0, 0, 1]], dtype=torch.float64)
+    M = splat_homographies(scene["means"], scene["quats"], scene["scales"], scene["viewmat"], K)
+    box = planar_bboxes(M, width, height).double()
+    assert (box[:, 0] > 0).all() and (box[:, 1] < width).all()  # unclipped
+    assert (box[:, 2] > 0).all() and (box[:, 3] < height).all()
+    t = torch.linspace(0, 2 * torch.pi, 2000, dtype=torch.float64)
+    rim = torch.stack([3 * torch.cos(t), 3 * torch.sin(t), torch.ones_like(t)], 0)  # [3, T]
+    p = M @ rim
+    xs, ys = p[:, 0] / p[:, 2] - 0.5, p[:, 1] / p[:, 2] - 0.5  # in pixel-index units
+    assert ((xs.min(1).values >= box[:, 0] - 1) & (xs.max(1).values <= box[:, 1])).all()
+    assert ((ys.min(1).values >= box[:, 2] - 1) & (ys.max(1).values <= box[:, 3])).all()
+    # tight: the first and last pixel of each box are within one pixel of the rim
+    assert (box[:, 0] - xs.min(1).values <= 1.0 + 1e-6).all() and (xs.max(1).values - (box[:, 1] - 1) <= 1.0 + 1e-6).all()
+    assert (box[:, 2] - ys.min(1).values <= 1.0 + 1e-6).all() and (ys.max(1).values - (box[:, 3] - 1) <= 1.0 + 1e-6).all()

@@ -13,26 +13,42 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from . import RasterOutput
-from .planar_torch import SQUARE_CORNERS, PlanarProfile, planar_visible
+from .planar_torch import PlanarProfile, planar_visible
 
 _KIND_CODES = {"gaussian_surfel": 0, "grid": 1}
 
 
+#: pixels of slack on each side of the exact box: float rounding of (u, v) in the rasteriser
+#: never reaches it, so no pixel the reference draws is dropped
+BBOX_SLACK = 1e-3
+
+
 def planar_bboxes(M: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """int32 [m, 4] pixel boxes (x0, x1, y0, y1), half-open and clipped, holding every pixel
-    whose centre lies in the bounding box of the projected 3-sigma square (one pixel of slack
-    on each side, so rounding never drops a pixel the reference draws).
+    whose centre lies in the image of the splat's 3-sigma disk.
 
-    Valid for splats from ``planar_visible`` (all four corners in front of the camera), where
-    the projected disk lies inside the projected square's convex image.
+    The disk u^2 + v^2 <= 9 is the conic Q = diag(1, 1, -9) in (u, v, 1); its image under M has
+    the dual conic C* = M Q^-1 M^T (tangent lines l satisfy l^T C* l = 0), so its vertical
+    tangents x = c, l = (1, 0, -c), solve C*_22 c^2 - 2 C*_02 c + C*_00 = 0 (and the same for y)
+    (the exact bounding box, as 2DGS computes it). Valid for splats from ``planar_visible``: the
+    whole disk is in front of the camera, so its image is an ellipse and C*_22 < 0.
+    Computed in float64 from the M the rasteriser uses.
     """
-    corners = torch.tensor([[u, v, 1.0] for u, v in SQUARE_CORNERS], dtype=M.dtype, device=M.device)
-    p = M.detach() @ corners.T  # [m, 3, 4] homogeneous pixels of the corners
-    xs, ys = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
-    x0 = torch.floor(xs.min(1).values - 0.5).clamp(0, width)
-    x1 = (torch.ceil(xs.max(1).values - 0.5) + 1).clamp(0, width)
-    y0 = torch.floor(ys.min(1).values - 0.5).clamp(0, height)
-    y1 = (torch.ceil(ys.max(1).values - 0.5) + 1).clamp(0, height)
+    Md = M.detach().double()
+    q_inv = torch.tensor([1.0, 1.0, -1.0 / 9.0], dtype=torch.float64, device=M.device)
+    C = (Md * q_inv) @ Md.transpose(1, 2)  # [m, 3, 3] dual conic
+
+    def extent(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, size: int):
+        # roots of c t^2 - 2 b t + a = 0; pixel i is inside when its centre i + 0.5 is in [lo, hi]
+        d = (b * b - a * c).clamp_min(0).sqrt()
+        r1, r2 = (b - d) / c, (b + d) / c
+        lo, hi = torch.minimum(r1, r2), torch.maximum(r1, r2)
+        i0 = torch.ceil(lo - 0.5 - BBOX_SLACK).clamp(0, size)
+        i1 = (torch.floor(hi - 0.5 + BBOX_SLACK) + 1).clamp(0, size)
+        return i0, torch.maximum(i1, i0)
+
+    x0, x1 = extent(C[:, 0, 0], C[:, 0, 2], C[:, 2, 2], width)
+    y0, y1 = extent(C[:, 1, 1], C[:, 1, 2], C[:, 2, 2], height)
     return torch.stack([x0, x1, y0, y1], 1).to(torch.int32).contiguous()
 
 
@@ -45,7 +61,7 @@ class _PlanarRasterizeCPU(torch.autograd.Function):
             M, bbox, opacities, colors, table, kind, width, height, background,
             torch.get_num_threads(),
         )
-        ctx.save_for_backward(M, opacities, colors, table, background, *state)
+        ctx.save_for_backward(M, bbox, opacities, colors, table, background, *state)
         ctx.meta = (kind, width, height)
         return img, alpha
 
@@ -54,13 +70,13 @@ class _PlanarRasterizeCPU(torch.autograd.Function):
     def backward(ctx, v_img, v_alpha):
         from .cpu_native import load_extension
 
-        M, opacities, colors, table, background, *state = ctx.saved_tensors
+        M, bbox, opacities, colors, table, background, *state = ctx.saved_tensors
         kind, width, height = ctx.meta
         dtype = colors.dtype
         v_img = v_img.to(dtype).contiguous()
         v_alpha = v_alpha.to(dtype).contiguous()
         v_M, v_op, v_col, v_tab = load_extension().planar_backward(
-            M, opacities, colors, table, kind, width, height, background, list(state), v_img,
+            M, bbox, opacities, colors, table, kind, width, height, background, list(state), v_img,
             v_alpha, torch.get_num_threads(),
         )
         T_final = state[0]

@@ -86,6 +86,13 @@ inline bool eval_pair(const S* M, S x, S y, int kind, const S* table, int G, Pai
   return true;
 }
 
+// The pixel lies in the splat's box [x0, x1) x [y0, y1) (a cheap test before the ray-plane
+// intersection: the box is conservative, so pixels outside it have r2 > 1 anyway; the forward
+// and backward passes skip the same pairs).
+inline bool in_box(const int32_t* r, int px, int py) {
+  return px >= r[0] && px < r[1] && py >= r[2] && py < r[3];
+}
+
 struct Bins {
   int tiles_x = 0, tiles_y = 0;
   at::Tensor tile_offsets;  // int64 [tiles + 1]
@@ -173,6 +180,7 @@ std::vector<at::Tensor> planar_forward_t(const at::Tensor& M, const at::Tensor& 
   int32_t* la = last.data_ptr<int32_t>();
   const int64_t* to = b.tile_offsets.data_ptr<int64_t>();
   const int32_t* ent = b.entries.data_ptr<int32_t>();
+  const int32_t* bb = bbox.data_ptr<int32_t>();
   const int64_t ntiles = int64_t(b.tiles_x) * b.tiles_y;
   const int tiles_x = b.tiles_x;
   {
@@ -191,6 +199,7 @@ std::vector<at::Tensor> planar_forward_t(const at::Tensor& M, const at::Tensor& 
           int32_t n_done = 0;
           for (int64_t i = e0; i < e1; ++i) {
             const int64_t p = ent[i];
+            if (!in_box(bb + 4 * p, px, py)) continue;
             if (!eval_pair<S>(Mp + 9 * p, x, y, int(kind), tab ? tab + p * G * G : nullptr, G, e))
               continue;
             const S a = std::min(op[p] * e.k, S(kPAlphaMax));
@@ -214,7 +223,8 @@ std::vector<at::Tensor> planar_forward_t(const at::Tensor& M, const at::Tensor& 
 }
 
 template <typename S>
-std::vector<at::Tensor> planar_backward_t(const at::Tensor& M, const at::Tensor& opac,
+std::vector<at::Tensor> planar_backward_t(const at::Tensor& M, const at::Tensor& bbox,
+                                          const at::Tensor& opac,
                                           const at::Tensor& colors, const at::Tensor& table,
                                           int64_t kind, int64_t width, int64_t height,
                                           const at::Tensor& background,
@@ -243,6 +253,7 @@ std::vector<at::Tensor> planar_backward_t(const at::Tensor& M, const at::Tensor&
   const int32_t* la = last.data_ptr<int32_t>();
   const int64_t* to = tile_offsets.data_ptr<int64_t>();
   const int32_t* ent = entries.data_ptr<int32_t>();
+  const int32_t* bb = bbox.data_ptr<int32_t>();
   const int64_t* sl = slots.data_ptr<int64_t>();
   const int64_t* po = prim_offsets.data_ptr<int64_t>();
   const S* gi = v_img.data_ptr<S>();
@@ -270,6 +281,7 @@ std::vector<at::Tensor> planar_backward_t(const at::Tensor& M, const at::Tensor&
           double T = Tf, W = 0.0;
           for (int64_t i = e0 + la[pix] - 1; i >= e0; --i) {
             const int64_t p = ent[i];
+            if (!in_box(bb + 4 * p, px, py)) continue;
             const S* Mi = Mp + 9 * p;
             if (!eval_pair<S>(Mi, x, y, int(kind), tab ? tab + p * GG : nullptr, G, e)) continue;
             const S ok = op[p] * e.k;
@@ -380,7 +392,8 @@ std::vector<at::Tensor> planar_forward(const at::Tensor& M, const at::Tensor& bb
                                  threads);
 }
 
-std::vector<at::Tensor> planar_backward(const at::Tensor& M, const at::Tensor& opac,
+std::vector<at::Tensor> planar_backward(const at::Tensor& M, const at::Tensor& bbox,
+                                        const at::Tensor& opac,
                                         const at::Tensor& colors, const at::Tensor& table,
                                         int64_t kind, int64_t width, int64_t height,
                                         const at::Tensor& background,
@@ -389,15 +402,17 @@ std::vector<at::Tensor> planar_backward(const at::Tensor& M, const at::Tensor& o
                                         int64_t threads) {
   check_planar(M, opac, colors, table, kind, background);
   TORCH_CHECK(state.size() == 6, "planar rasteriser: bad saved state");
+  TORCH_CHECK(bbox.scalar_type() == at::kInt && bbox.is_contiguous() && bbox.numel() == 4 * M.size(0),
+              "planar rasteriser: bbox must be int32 [N, 4]");
   const auto dt = colors.scalar_type();
   TORCH_CHECK(v_img.scalar_type() == dt && v_alpha.scalar_type() == dt && v_img.is_contiguous() &&
                   v_alpha.is_contiguous() && v_img.numel() == height * width * colors.size(1) &&
                   v_alpha.numel() == height * width,
               "planar rasteriser: gradients must be contiguous [H, W, C] and [H, W, 1]");
   if (dt == at::kDouble)
-    return planar_backward_t<double>(M, opac, colors, table, kind, width, height, background,
+    return planar_backward_t<double>(M, bbox, opac, colors, table, kind, width, height, background,
                                      state, v_img, v_alpha, threads);
-  return planar_backward_t<float>(M, opac, colors, table, kind, width, height, background, state,
+  return planar_backward_t<float>(M, bbox, opac, colors, table, kind, width, height, background, state,
                                   v_img, v_alpha, threads);
 }
 
@@ -408,7 +423,7 @@ void register_planar_ops(pybind11::module_& m) {
         "planar_forward(M[N,9], bbox int32[N,4], opacities[N], colors[N,C], table[N,G,G], kind, "
         "width, height, background[C], threads) -> [img, alpha, *state]");
   m.def("planar_backward", &planar_backward,
-        "planar_backward(M, opacities, colors, table, kind, width, height, background, state, "
+        "planar_backward(M, bbox, opacities, colors, table, kind, width, height, background, state, "
         "v_img, v_alpha, threads) -> [v_M, v_opacities, v_colors, v_table]");
 }
 
