@@ -35,6 +35,11 @@ def test_planar_fit_eval_export(demo, tmp_path):
     r = CliRunner().invoke(cli, ["export", str(run), "--format", "ply", "--out", str(tmp_path / "m.ply")])
     assert r.exit_code == 2 and "PLY export of planar" in r.output, r.output
     assert not (tmp_path / "m.ply").exists()
+    r = CliRunner().invoke(cli, ["export", str(run), "--format", "kernels", "--out", str(tmp_path / "k")])
+    assert r.exit_code == 2 and "kernel plots of planar" in r.output, r.output
+    r = CliRunner().invoke(cli, ["export", str(run), "--format", "renders", "--out", str(tmp_path / "r")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "r" / "path.gif").is_file()
 
 
 def test_planar_with_volumetric_only_kernel_is_an_input_error(demo, tmp_path):

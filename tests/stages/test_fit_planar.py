@@ -80,3 +80,34 @@ def test_build_model_planar_and_unknown_pairs():
         build_model(scene, FitConfig(primitive="curved"))
     with pytest.raises(InputError, match="volumetric-only"):
         build_model(scene, FitConfig(primitive="planar", kernel="learned", kernel_options={"k": 4}))
+
+
+def test_planar_training_state_round_trip():
+    """Stop, save the trainer state, continue: same parameters as not stopping (the path of
+    `fit --resume`), with MCMC relocation and growth of two-scale primitives on the way."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        scene = synthetic_scene(num_views=8, size=24)
+
+        def fresh():
+            torch.manual_seed(0)
+            m = PlanarModel.from_points(scene.points, scene.point_colors, kernel="learned",
+                                        kernel_options={"freeze_iters": 20}, color_options={"sh_degree": 1})
+            return Trainer(scene, m, TrainConfig(iters=60, budget=100, backend="auto", refine_start=10,
+                                                 refine_every=20, seed=3))
+
+        a = fresh()
+        a.run()
+        b = fresh()
+        b.run(should_stop=lambda: b.it >= 25)
+        c = fresh()
+        c.load_state_dict(b.state_dict())
+        c.run()
+    finally:
+        torch.set_num_threads(threads)
+    assert c.it == a.it == 60 and a.model.num_primitives > 60
+    for k in a.model.prims:
+        assert torch.allclose(a.model.prims[k], c.model.prims[k], atol=1e-4), k
+    for (name, p), q in zip(a.model.kernel.named_parameters(), c.model.kernel.parameters()):
+        assert torch.allclose(p, q, atol=1e-5), name
