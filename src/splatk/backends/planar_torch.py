@@ -16,7 +16,7 @@ in (u, v, 1) space, so the intersection is (2DGS Eq. 9-10; peers.md Sec. 5)::
 ``alpha = min(0.999, o * k(u, v))``, pairs with ``alpha < 1/255`` skipped, front-to-back
 compositing by camera depth of the centres (stable), a pixel ending before the splat whose
 ``T * (1 - alpha)`` would fall below ``1e-4`` (T in float64 log space), as the volumetric
-contract in :mod:`splatk.backends`. Which splats are drawn at all is :func:`planar_visible`:
+contract in :mod:`splatk.backends`. Which splats are drawn at all is :func:`planar_in_front`:
 centre and the four corners of the 3-sigma square at camera depth > ``NEAR`` (a disk crossing
 the camera plane is dropped whole, in every backend). It omits 2DGS's screen-space low-pass
 fallback (peers.md Sec. 5) and is meant for small images (tests, checks); the native tiled
@@ -34,9 +34,9 @@ from ..functional.projection import quats_to_rotmats
 
 #: splats whose centre or 3-sigma-square corners are nearer than this (camera z) are not drawn
 NEAR = 1e-2
-#: (u, v) of the 3-sigma square's corners, in units of the scales
-SQUARE_CORNERS = ((-3.0, -3.0), (3.0, -3.0), (3.0, 3.0), (-3.0, 3.0))
 PLANAR_PROFILE_KINDS = ("gaussian_surfel", "grid")
+#: the dense reference holds ~20 float tensors of this many pairs: ~2 GB in float32 at the cap
+MAX_DENSE_PAIRS = 25_000_000
 
 
 class PlanarProfile(NamedTuple):
@@ -93,9 +93,11 @@ def splat_homographies(means: torch.Tensor, quats: torch.Tensor, scales: torch.T
         rot[:, :, 1] * scales[:, 1:2],
         means,
     ], -1)  # [N, 3, 3] world: columns s_u t_u, s_v t_v, p
-    cam = rw @ cols
+    # (A @ B^T)^T with a 2D right operand: torch folds the batch into one mm (a broadcast
+    # rw @ cols runs as a much slower bmm of 3x3 blocks)
+    cam = (cols.mT @ rw.T).mT
     cam = torch.cat([cam[:, :, :2], cam[:, :, 2:] + tw[:, None]], -1)
-    return K @ cam
+    return (cam.mT @ K.T).mT
 
 
 def ray_splat_uv(M: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
@@ -127,26 +129,37 @@ def profile_function(profile: PlanarProfile) -> Callable[[torch.Tensor, torch.Te
     raise ValueError(f"unknown planar profile {profile.kind!r}; choose from {', '.join(PLANAR_PROFILE_KINDS)}")
 
 
+def planar_in_front(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                    viewmat: torch.Tensor) -> torch.Tensor:
+    """[N] bool: the splat's centre and the four corners of its 3-sigma square lie at camera
+    depth > ``NEAR``. Then the whole disk is in front of the camera and its image is an ellipse.
+
+    The corners' depths are ``z + 3 (+-a s_u +- b s_v)`` with ``a``, ``b`` the camera-z
+    components of the disk's axes, so the nearest is ``z - 3 (|a| s_u + |b| s_v)``. Disks that
+    cross the camera plane are rare and dropped whole, in every backend.
+    """
+    with torch.no_grad():
+        rz, tz = viewmat[2, :3], viewmat[2, 3]
+        depth = means @ rz + tz
+        axes_z = quats_to_rotmats(quats)[:, :, :2].mT @ rz  # [N, 2]: camera z of t_u, t_v
+        nearest = depth - 3.0 * (axes_z.abs() * scales).sum(1)
+        return (depth > NEAR) & (nearest > NEAR)
+
+
 def planar_visible(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                    viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The splats every backend draws, front to back, and their homographies.
-
-    A splat is drawn when its centre and the four corners of its 3-sigma square lie at camera
-    depth > ``NEAR`` (M's last row gives the depth when K's last row is (0, 0, 1)): then the
-    whole disk is in front of the camera and its image lies inside the projected corners'
-    bounding box. Disks that cross the camera plane are rare and dropped whole.
+    """The splats every backend draws (:func:`planar_in_front`), front to back by the camera
+    depth of their centres (stable: ties by index), and their homographies.
 
     Returns:
-        order [m] primitive indices sorted by centre depth (stable), M [m, 3, 3].
+        order [m] primitive indices, M [m, 3, 3].
     """
-    depth = (means @ viewmat[:3, :3].T + viewmat[:3, 3])[:, 2]
-    order = torch.argsort(depth.detach(), stable=True)
-    M = splat_homographies(means[order], quats[order], scales[order], viewmat, K)
     with torch.no_grad():
-        corners = torch.tensor([[u, v, 1.0] for u, v in SQUARE_CORNERS], dtype=M.dtype, device=M.device)
-        w = M[:, 2, :] @ corners.T  # [m, 4] camera depth of the corners
-        keep = (depth[order] > NEAR) & (w > NEAR).all(1)
-    return order[keep], M[keep]
+        idx = torch.nonzero(planar_in_front(means, quats, scales, viewmat)).flatten()
+        depth = means.index_select(0, idx) @ viewmat[2, :3] + viewmat[2, 3]
+        order = idx[torch.argsort(depth, stable=True)]
+    M = splat_homographies(means[order], quats[order], scales[order], viewmat, K)
+    return order, M
 
 
 def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -176,6 +189,10 @@ def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
                             torch.arange(width, dtype=means.dtype) + 0.5, indexing="ij")
     pix = torch.stack([xs, ys], -1).reshape(-1, 2)  # [HW, 2]
     hw, m = pix.shape[0], order.numel()
+    if hw * m > MAX_DENSE_PAIRS:
+        raise ValueError(f"the dense planar reference would build {hw * m:,} (pixel, splat) pairs "
+                         f"(at most {MAX_DENSE_PAIRS:,}); render planar scenes of this size with "
+                         "backend 'cpu' (the native rasteriser)")
     c = colors.shape[-1]
     if m == 0:
         out = torch.zeros(hw, c, dtype=dtype)

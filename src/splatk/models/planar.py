@@ -13,7 +13,7 @@ from torch import nn
 from ..backends import resolve_backend
 from ..backends.fused_cpu import use_fused
 from ..backends.planar import rasterize_planar
-from ..backends.planar_torch import planar_visible
+from ..backends.planar_torch import planar_in_front
 from ..colors import ColorModel, make_color_model
 from ..functional.projection import quats_to_rotmats
 from ..kernels import ViewContext
@@ -108,14 +108,13 @@ class PlanarModel(nn.Module):
     def render(self, camera, background: torch.Tensor, sh_degree: int = 3,
                backend: str = "auto") -> RenderResult:
         """Render one camera; differentiable in every parameter. ``visible`` lists the drawn
-        primitives (in front of the camera, see :func:`planar_visible`) in index order."""
+        primitives (in front of the camera, see :func:`planar_in_front`) in index order."""
         dev = self.prims["means"].device
         backend = resolve_backend(backend, dev)
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
-        with torch.no_grad():
-            order, _ = planar_visible(self.prims["means"], self.prims["quats"], self.scales, viewmat, K)
-            idx = torch.sort(order).values
+        idx = torch.nonzero(planar_in_front(self.prims["means"], self.prims["quats"], self.scales,
+                                            viewmat)).flatten()
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         scales = torch.exp(vis["log_scales"])
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
