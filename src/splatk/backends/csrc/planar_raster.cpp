@@ -11,8 +11,9 @@
 //     caller gives (already sorted by camera depth, stable), a pixel ends before the splat whose
 //     T (1 - alpha) would fall below 1e-4 (T kept in float64, as the reference's log-space T).
 //
-// The caller (planar_cpu.py) passes only splats in front of the camera with their conservative
-// pixel bbox [x0, x1) x [y0, y1) (the bbox of the projected 3-sigma square's corners).
+// The caller (planar_cpu.py) passes only splats wholly in front of the camera
+// (planar_torch.planar_in_front) with the pixel box [x0, x1) x [y0, y1) of their projected
+// 3-sigma disk (exact ellipse box plus 1e-3 px): tiles and pixels outside it are skipped.
 //
 // Forward: binning into 16x16 tiles (a serial counting pass in primitive order, so every tile
 // list stays in depth order), then OpenMP over tiles, scalar code, pixels of a tile one by one.
