@@ -14,18 +14,42 @@ in (u, v, 1) space, so the intersection is (2DGS Eq. 9-10; peers.md Sec. 5)::
 :func:`rasterize_planar` is the dense pure-torch reference rasteriser built on it: every
 (pixel, splat) pair, (u, v) normalised by the 3-sigma extent (so the support is the unit disk),
 ``alpha = min(0.999, o * k(u, v))``, pairs with ``alpha < 1/255`` skipped, front-to-back
-compositing by camera depth of the centres, as the volumetric contract in
-:mod:`splatk.backends`. It omits 2DGS's screen-space low-pass fallback (peers.md Sec. 5) and
-is meant for small images (tests, checks); a tiled / native planar backend is not written.
+compositing by camera depth of the centres (stable), a pixel ending before the splat whose
+``T * (1 - alpha)`` would fall below ``1e-4`` (T in float64 log space), as the volumetric
+contract in :mod:`splatk.backends`. Which splats are drawn at all is :func:`planar_in_front`:
+centre and the four corners of the 3-sigma square at camera depth > ``NEAR`` (a disk crossing
+the camera plane is dropped whole, in every backend). It omits 2DGS's screen-space low-pass
+fallback (peers.md Sec. 5) and is meant for small images (tests, checks); the native tiled
+version is :mod:`splatk.backends.planar_cpu`, the dispatcher :mod:`splatk.backends.planar`.
 """
 from __future__ import annotations
 
-from typing import Callable
+import math
+from typing import Callable, NamedTuple
 
 import torch
 
-from . import ALPHA_MAX, ALPHA_MIN, RasterOutput
+from . import ALPHA_MAX, ALPHA_MIN, T_MIN, RasterOutput
 from ..functional.projection import quats_to_rotmats
+
+#: splats whose centre or 3-sigma-square corners are nearer than this (camera z) are not drawn
+NEAR = 1e-2
+PLANAR_PROFILE_KINDS = ("gaussian_surfel", "grid")
+#: the dense reference holds ~20 float tensors of this many pairs: ~2 GB in float32 at the cap
+MAX_DENSE_PAIRS = 25_000_000
+
+
+class PlanarProfile(NamedTuple):
+    """Opacity profile over a planar splat's normalised (u, v) (support: the unit disk).
+
+    Attributes:
+        kind: ``gaussian_surfel`` (exp(-4.5 r^2), no parameters) or ``grid``.
+        table: ``grid`` only: [N, G, G] values at nodes ``linspace(-1, 1, G)`` indexed [v, u]
+            (bilinear, :func:`bilinear`), one table per primitive; gradients flow into it.
+    """
+
+    kind: str
+    table: torch.Tensor | None = None
 
 
 def bilinear(table: torch.Tensor, idx: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -69,9 +93,11 @@ def splat_homographies(means: torch.Tensor, quats: torch.Tensor, scales: torch.T
         rot[:, :, 1] * scales[:, 1:2],
         means,
     ], -1)  # [N, 3, 3] world: columns s_u t_u, s_v t_v, p
-    cam = rw @ cols
+    # (A @ B^T)^T with a 2D right operand: torch folds the batch into one mm (a broadcast
+    # rw @ cols runs as a much slower bmm of 3x3 blocks)
+    cam = (cols.mT @ rw.T).mT
     cam = torch.cat([cam[:, :, :2], cam[:, :, 2:] + tw[:, None]], -1)
-    return K @ cam
+    return (cam.mT @ K.T).mT
 
 
 def ray_splat_uv(M: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
@@ -90,10 +116,56 @@ def ray_splat_uv(M: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
     return c[:, :2] / c[:, 2:3]
 
 
+def profile_function(profile: PlanarProfile) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """``kernel(uv [P, 2], idx [P]) -> [P]`` of a :class:`PlanarProfile` (0 outside the unit disk)."""
+    from ..kernels.learned_planar import gaussian_surfel
+
+    if profile.kind == "gaussian_surfel":
+        return lambda uv, idx: gaussian_surfel(uv)
+    if profile.kind == "grid":
+        if profile.table is None:
+            raise ValueError("planar profile 'grid' needs a table [N, G, G]")
+        return lambda uv, idx: bilinear(profile.table, idx, uv) * ((uv * uv).sum(-1) <= 1.0)
+    raise ValueError(f"unknown planar profile {profile.kind!r}; choose from {', '.join(PLANAR_PROFILE_KINDS)}")
+
+
+def planar_in_front(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                    viewmat: torch.Tensor) -> torch.Tensor:
+    """[N] bool: the splat's centre and the four corners of its 3-sigma square lie at camera
+    depth > ``NEAR``. Then the whole disk is in front of the camera and its image is an ellipse.
+
+    The corners' depths are ``z + 3 (+-a s_u +- b s_v)`` with ``a``, ``b`` the camera-z
+    components of the disk's axes, so the nearest is ``z - 3 (|a| s_u + |b| s_v)``. Disks that
+    cross the camera plane are rare and dropped whole, in every backend.
+    """
+    with torch.no_grad():
+        rz, tz = viewmat[2, :3], viewmat[2, 3]
+        depth = means @ rz + tz
+        axes_z = quats_to_rotmats(quats)[:, :, :2].mT @ rz  # [N, 2]: camera z of t_u, t_v
+        nearest = depth - 3.0 * (axes_z.abs() * scales).sum(1)
+        return (depth > NEAR) & (nearest > NEAR)
+
+
+def planar_visible(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                   viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The splats every backend draws (:func:`planar_in_front`), front to back by the camera
+    depth of their centres (stable: ties by index), and their homographies.
+
+    Returns:
+        order [m] primitive indices, M [m, 3, 3].
+    """
+    with torch.no_grad():
+        idx = torch.nonzero(planar_in_front(means, quats, scales, viewmat)).flatten()
+        depth = means.index_select(0, idx) @ viewmat[2, :3] + viewmat[2, 3]
+        order = idx[torch.argsort(depth, stable=True)]
+    M = splat_homographies(means[order], quats[order], scales[order], viewmat, K)
+    return order, M
+
+
 def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                      opacities: torch.Tensor, colors: torch.Tensor, viewmat: torch.Tensor,
                      K: torch.Tensor, width: int, height: int,
-                     kernel: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                     kernel: "Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | PlanarProfile",
                      background: torch.Tensor | None = None) -> RasterOutput:
     """Dense reference rasteriser for planar primitives.
 
@@ -102,35 +174,45 @@ def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
         opacities: [N]; colors: [N, C].
         viewmat, K: [4, 4] world->camera, [3, 3] intrinsics.
         width, height: image size.
-        kernel: ``kernel(uv [P, 2], idx [P]) -> [P]`` opacity profile at normalised (u, v)
-            (unit disk support), e.g. ``lambda uv, idx: gaussian_surfel(uv)`` or a learned
-            planar kernel's table lookup.
+        kernel: a :class:`PlanarProfile`, or ``kernel(uv [P, 2], idx [P]) -> [P]`` opacity
+            profile at normalised (u, v) (unit disk support), e.g.
+            ``lambda uv, idx: gaussian_surfel(uv)`` or a learned planar kernel's table lookup.
         background: [C] or None (zeros).
     Returns:
         RasterOutput(colors [H, W, C], alphas [H, W, 1]).
     """
-    n = means.shape[0]
-    depth = (means @ viewmat[:3, :3].T + viewmat[:3, 3])[:, 2]
-    order = torch.argsort(depth, stable=True)
-    front = depth[order] > 1e-2
-    order = order[front]
-    M = splat_homographies(means[order], quats[order], scales[order], viewmat, K)  # [n', 3, 3]
+    if isinstance(kernel, PlanarProfile):
+        kernel = profile_function(kernel)
+    dtype = colors.dtype
+    order, M = planar_visible(means, quats, scales, viewmat, K)
     ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype) + 0.5,
                             torch.arange(width, dtype=means.dtype) + 0.5, indexing="ij")
     pix = torch.stack([xs, ys], -1).reshape(-1, 2)  # [HW, 2]
     hw, m = pix.shape[0], order.numel()
-    pair_pix = pix[:, None, :].expand(hw, m, 2).reshape(-1, 2)
-    pair_idx = torch.arange(m).repeat(hw)
-    uv = ray_splat_uv(M[pair_idx], pair_pix) / 3.0  # 3-sigma extent -> unit disk
-    k = kernel(uv, order[pair_idx]).reshape(hw, m)
-    alpha = (opacities[order][None, :] * k).clamp(max=ALPHA_MAX)
-    alpha = alpha * (alpha >= ALPHA_MIN)
-    trans = torch.cumprod(torch.cat([torch.ones(hw, 1, dtype=alpha.dtype), 1.0 - alpha[:, :-1]], 1), 1)
-    w = alpha * trans
-    out = w @ colors[order]
-    t_final = trans[:, -1:] * (1.0 - alpha[:, -1:]) if m else torch.ones(hw, 1, dtype=means.dtype)
+    if hw * m > MAX_DENSE_PAIRS:
+        raise ValueError(f"the dense planar reference would build {hw * m:,} (pixel, splat) pairs "
+                         f"(at most {MAX_DENSE_PAIRS:,}); render planar scenes of this size with "
+                         "backend 'cpu' (the native rasteriser)")
+    c = colors.shape[-1]
+    if m == 0:
+        out = torch.zeros(hw, c, dtype=dtype)
+        t_final = torch.ones(hw, 1, dtype=dtype)
+    else:
+        pair_pix = pix[:, None, :].expand(hw, m, 2).reshape(-1, 2)
+        pair_idx = torch.arange(m).repeat(hw)
+        uv = ray_splat_uv(M[pair_idx], pair_pix) / 3.0  # 3-sigma extent -> unit disk
+        k = kernel(uv, order[pair_idx]).reshape(hw, m)
+        alpha = (opacities[order][None, :] * k).clamp(max=ALPHA_MAX)
+        alpha = alpha * (alpha >= ALPHA_MIN)
+        # Transmittance in float64 log space; a pixel ends before the splat that would take T
+        # below T_MIN (non-increasing, so the blended splats are a prefix of each pixel's list).
+        log1m = torch.log1p(-alpha.double())
+        log_before = torch.cumsum(log1m, 1) - log1m
+        with torch.no_grad():
+            blended = (log_before + log1m) >= math.log(T_MIN)
+        w = (alpha.double() * torch.exp(log_before) * blended).to(dtype)
+        out = w @ colors[order]
+        t_final = torch.exp((log1m * blended).sum(1, keepdim=True)).to(dtype)
     if background is not None:
         out = out + t_final * background
-    c = colors.shape[-1]
-    del n
     return RasterOutput(out.reshape(height, width, c), (1.0 - t_final).reshape(height, width, 1))

@@ -9,6 +9,7 @@ import torch
 
 from ..colors import make_color_model
 from ..kernels import make_kernel
+from .planar import PlanarModel
 from .volumetric import SplatModel
 
 FORMAT_VERSION = 1
@@ -33,8 +34,9 @@ def atomic_torch_save(obj, path: str | Path) -> Path:
     return path
 
 
-def model_spec(model: SplatModel, kernel_options: dict, color_options: dict) -> dict:
+def model_spec(model: SplatModel | PlanarModel, kernel_options: dict, color_options: dict) -> dict:
     return {
+        "primitive": getattr(model, "primitive", "volumetric"),
         "kernel": model.kernel.name,
         "kernel_options": dict(kernel_options),
         "color": model.color.name,
@@ -54,10 +56,22 @@ def save_model(model: SplatModel, path, spec: dict, meta: dict | None = None) ->
     return atomic_torch_save(obj, path)
 
 
-def build_model(spec: dict, prims: dict, kernel_state: dict | None = None) -> SplatModel:
-    kernel = make_kernel(spec["kernel"], **spec.get("kernel_options", {}))
+def build_model(spec: dict, prims: dict, kernel_state: dict | None = None) -> SplatModel | PlanarModel:
     color = make_color_model(spec["color"], **spec.get("color_options", {}))
-    model = SplatModel(kernel, color, prims)
+    primitive = spec.get("primitive", "volumetric")  # files from before planar models: volumetric
+    if primitive == "planar":
+        from ..kernels.planar import make_planar_kernel
+
+        options = dict(spec.get("kernel_options", {}))
+        if kernel_state and spec["kernel"] == "learned":
+            # the saved networks are loaded below: do not read a weights file that may be gone
+            options["weights"] = "none"
+        model = PlanarModel(make_planar_kernel(spec["kernel"], **options), color, prims)
+    elif primitive == "volumetric":
+        model = SplatModel(make_kernel(spec["kernel"], **spec.get("kernel_options", {})), color, prims)
+    else:
+        raise ValueError(f"unknown primitive type {primitive!r} in model spec")
+    kernel = model.kernel
     if kernel_state:
         kernel.load_state_dict(kernel_state)
     return model

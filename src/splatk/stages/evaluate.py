@@ -80,6 +80,7 @@ def run_eval(
         "threads": torch.get_num_threads(),
         "lpips_net": lpips_net if "lpips" in metrics else None,
         "kernel": meta["spec"]["kernel"],
+        "primitive": meta["spec"].get("primitive", "volumetric"),
         "color": meta["spec"]["color"],
         "warnings": sorted(set(warnings)),
     }

@@ -63,6 +63,11 @@ def export_ply(run: str | Path, out: str | Path) -> Path:
     from plyfile import PlyData, PlyElement
 
     model, _ = load_model(Path(run) / "model.pt")
+    if getattr(model, "primitive", "volumetric") == "planar":
+        # a 3DGS PLY has three scales and viewers draw ellipsoids; faking a thin third scale
+        # would look like surfels in some viewers and not others, so say so instead
+        raise InputError(Path(run) / "model.pt", "PLY export of planar (surfel) models is not supported",
+                         "use `splatk export --format native` or `--format renders`")
     cols = ply_arrays(model)
     dtype = [(k, "f4") for k in cols]
     arr = np.empty(model.num_primitives, dtype=dtype)

@@ -28,6 +28,7 @@ from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..kernels import KERNELS
 from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
+from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
 from ..train.trainer import StepInfo, TrainConfig, Trainer
 from .autobudget import AutoBudget, AutoBudgetConfig, render_psnr, split_holdout
@@ -158,8 +159,20 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
     return scene_path, cfg, state
 
 
-def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel:
+PRIMITIVES = ("volumetric", "planar")
+
+
+def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel | PlanarModel:
     """Initial model; ``budget`` (default ``cfg.train.budget``) caps the initial points."""
+    if cfg.primitive not in PRIMITIVES:
+        raise InputError(None, f"unknown primitive type {cfg.primitive!r}",
+                         f"use --primitive {' or '.join(PRIMITIVES)}")
+    if cfg.primitive == "planar":
+        from ..kernels.planar import make_planar_kernel
+
+        # checked before the points are made: an unknown (primitive, kernel) pair is an input
+        # error with a message, not a traceback
+        make_planar_kernel(cfg.kernel, **cfg.kernel_options)
     budget = cfg.train.budget if budget is None else budget
     if cfg.train.init == "auto":  # recorded resolved, so config.yaml says what ran
         cfg.train.init = "sfm" if scene.points.shape[0] > 0 else "random"
@@ -171,14 +184,17 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel:
     # learned) start 3x larger so that every kernel starts from the same screen footprint.
     # Measured on cup (downscale 4, 20k random points, 1000 iterations, train-view PSNR):
     # learned k=2 20.05 dB at 0.1, 22.06 dB at 0.3; Gaussian 21.44 dB at 0.1.
+    # Planar kernels both end at the 3-sigma disk, as the Gaussian.
     if cfg.train.init_scale > 0:
         scale_factor = cfg.train.init_scale
     elif cfg.train.init == "random":
-        support = getattr(KERNELS.get(cfg.kernel), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS)
+        support = (GAUSSIAN_SUPPORT_SIGMAS if cfg.primitive == "planar" else
+                   getattr(KERNELS.get(cfg.kernel), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS))
         scale_factor = 0.1 * GAUSSIAN_SUPPORT_SIGMAS / support
     else:
         scale_factor = 1.0
-    return SplatModel.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color, scale_factor=scale_factor,
+    model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
+    return model_class.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color, scale_factor=scale_factor,
                                   kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
 
 
@@ -294,6 +310,7 @@ def run_fit(
         "num_primitives": trainer.model.num_primitives,
         "footprint_mb": trainer.model.footprint_bytes() / 2**20,
         "kernel": cfg.kernel,
+        "primitive": cfg.primitive,
         "color": cfg.color,
         "backend": cfg.train.backend,
         "events": trainer.events,

@@ -124,6 +124,12 @@ def export_kernel_plots(
     run = Path(run)
     out = Path(out)
     model, meta = load_model(run / "model.pt")
+    if getattr(model, "primitive", "volumetric") == "planar":
+        from ..errors import InputError
+
+        # the figures show radial profiles of volumetric kernels; a surfel kernel is 2D (u, v)
+        raise InputError(run / "model.pt", "kernel plots of planar (surfel) models are not supported",
+                         "use `splatk export --format renders`")
     model.eval()
     cams, source, background = _scene_cameras(meta, scene_path)
     if not cams:

@@ -101,7 +101,9 @@ class MCMCStrategy:
         return n_add
 
     def inject_noise(self, model, means_lr: float, generator=None) -> None:
-        cov = covariances_3d(model.prims["quats"].data, model.scales.data)
+        # planar models have two scales; their scales_3d adds a zero along the disk's normal
+        scales = model.scales_3d if hasattr(model, "scales_3d") else model.scales
+        cov = covariances_3d(model.prims["quats"].data, scales.data)
         gate = torch.pow(1.0 - model.opacities, 100.0)
         noise = torch.randn(model.num_primitives, 3, generator=generator, device=cov.device)
         noise = noise * (gate * self.cfg.noise_lr * means_lr)[:, None]

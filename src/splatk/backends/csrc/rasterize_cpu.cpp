@@ -160,7 +160,8 @@ std::vector<at::Tensor> rasterize_backward(const std::vector<at::Tensor>& state,
 
 }  // namespace
 
-void register_fused_ops(pybind11::module_& m);  // fused_ops.cpp
+void register_fused_ops(pybind11::module_& m);   // fused_ops.cpp
+void register_planar_ops(pybind11::module_& m);  // planar_raster.cpp
 
 }  // namespace splatk
 
@@ -184,4 +185,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "time phases with the calling thread's CPU clock instead of wall time");
   m.def("simd_width", &splatk::simd_width, "vector width the kernels were compiled for (bits)");
   splatk::register_fused_ops(m);
+  splatk::register_planar_ops(m);
 }

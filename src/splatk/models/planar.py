@@ -1,0 +1,132 @@
+"""Planar primitives (2DGS-style surfels): oriented disks plus a planar kernel and a colour model.
+
+Same interface as :class:`splatk.models.volumetric.SplatModel` (the trainer, MCMC, save/load and
+eval treat both alike); the differences are two scales per primitive (the disk's in-plane
+sigmas, ``log_scales`` [N, 2]), the rasteriser (:func:`splatk.backends.planar.rasterize_planar`)
+and the kernels (:mod:`splatk.kernels.planar`).
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..backends import resolve_backend
+from ..backends.fused_cpu import use_fused
+from ..backends.planar import rasterize_planar
+from ..backends.planar_torch import planar_in_front
+from ..colors import ColorModel, make_color_model
+from ..functional.projection import quats_to_rotmats
+from ..kernels import ViewContext
+from ..kernels.planar import PlanarKernel, make_planar_kernel
+from .volumetric import RenderResult, knn_mean_sq_dist
+
+
+class PlanarModel(nn.Module):
+    """A scene of N planar primitives.
+
+    ``self.prims``: means [N, 3], log_scales [N, 2], quats [N, 4] (w, x, y, z; columns 0 and 1
+    of the rotation span the disk, column 2 is its normal), opacity_logits [N], plus the colour
+    model's and the kernel's per-primitive parameters.
+    """
+
+    primitive = "planar"
+
+    def __init__(self, kernel: PlanarKernel, color: ColorModel, prims: dict[str, torch.Tensor]):
+        super().__init__()
+        self.kernel = kernel
+        self.color = color
+        self.prims = nn.ParameterDict({k: nn.Parameter(v.contiguous()) for k, v in prims.items()})
+
+    @classmethod
+    def from_points(
+        cls,
+        points: torch.Tensor,
+        colors: torch.Tensor,
+        kernel: PlanarKernel | str = "gaussian",
+        color: ColorModel | str = "sh",
+        init_opacity: float = 0.5,
+        scale_factor: float = 1.0,
+        kernel_options: dict | None = None,
+        color_options: dict | None = None,
+    ) -> "PlanarModel":
+        """As :meth:`SplatModel.from_points` (neighbour-spacing scales, opacity 0.5), except the
+        rotations: random (from torch's global RNG), as 2DGS does, since identity rotations
+        would turn every disk edge-on to views along the world x and y axes."""
+        if isinstance(kernel, str):
+            kernel = make_planar_kernel(kernel, **(kernel_options or {}))
+        if isinstance(color, str):
+            color = make_color_model(color, **(color_options or {}))
+        n = points.shape[0]
+        dist = knn_mean_sq_dist(points, k=3).clamp_min(1e-7).sqrt() * scale_factor
+        prims = {
+            "means": points.float().clone(),
+            "log_scales": torch.log(dist)[:, None].repeat(1, 2),
+            "quats": nn.functional.normalize(torch.randn(n, 4), dim=-1),
+            "opacity_logits": torch.logit(torch.full((n,), init_opacity)),
+        }
+        prims.update(color.init_primitive_params(colors.float().clamp(0, 1)))
+        prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
+        return cls(kernel, color, prims)
+
+    # ---- accessors (as SplatModel) ------------------------------------------------------
+    @property
+    def num_primitives(self) -> int:
+        return self.prims["means"].shape[0]
+
+    @property
+    def scales(self) -> torch.Tensor:
+        """[N, 2] in-plane sigmas."""
+        return torch.exp(self.prims["log_scales"])
+
+    @property
+    def scales_3d(self) -> torch.Tensor:
+        """[N, 3] scales with 0 along the normal: a disk has no thickness (used for the shape of
+        MCMC's position noise, which so stays in each disk's plane)."""
+        s = self.scales
+        return torch.cat([s, torch.zeros_like(s[:, :1])], 1)
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.prims["opacity_logits"])
+
+    def floats_per_primitive(self) -> int:
+        return sum(int(v[0].numel()) for v in self.prims.values())
+
+    def footprint_bytes(self) -> int:
+        """float32 bytes of everything stored: per-primitive parameters and global networks."""
+        per_prim = 4 * self.floats_per_primitive() * self.num_primitives
+        nets = 4 * sum(p.numel() for p in self.kernel.parameters())
+        return per_prim + nets
+
+    def learning_rates(self) -> dict[str, float]:
+        lrs = {"log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05}  # as SplatModel
+        lrs.update(self.color.learning_rates())
+        lrs.update(self.kernel.learning_rates())
+        return lrs
+
+    # ---- rendering ----------------------------------------------------------------------
+    def render(self, camera, background: torch.Tensor, sh_degree: int = 3,
+               backend: str = "auto") -> RenderResult:
+        """Render one camera; differentiable in every parameter. ``visible`` lists the drawn
+        primitives (in front of the camera, see :func:`planar_in_front`) in index order."""
+        dev = self.prims["means"].device
+        backend = resolve_backend(backend, dev)
+        viewmat = camera.world_to_cam.to(dev)
+        K = camera.K.to(dev)
+        idx = torch.nonzero(planar_in_front(self.prims["means"], self.prims["quats"], self.scales,
+                                            viewmat)).flatten()
+        vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
+        scales = torch.exp(vis["log_scales"])
+        cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree,
+                                fused=use_fused(backend, dev))
+        if self.kernel.needs_view:
+            rw, tw = viewmat[:3, :3], viewmat[:3, 3]
+            view = ViewContext(vis["means"] @ rw.T + tw, scales, rw @ quats_to_rotmats(vis["quats"]))
+        else:
+            view = ViewContext(None, None, None)
+        profile = self.kernel.profile(vis, view)
+        out = rasterize_planar(vis["means"], vis["quats"], scales, torch.sigmoid(vis["opacity_logits"]),
+                               rgb, viewmat, K, camera.width, camera.height, profile,
+                               background=background.to(dev), backend=backend)
+        return RenderResult(out.colors, out.alphas, idx)
