@@ -19,8 +19,9 @@ _D = ImageFitConfig()
 @click.argument("photo", type=click.Path(path_type=Path))
 @click.option("--kernel", type=click.Choice(KERNELS), default=_D.kernel, show_default=True,
               help="2D kernel: gaussian (GaussianImage), gabor (Gabor splatting), learned (planar decoder).")
-@click.option("--budget-bytes", type=int, default=_D.budget_bytes, show_default=True,
-              help="Bytes for all per-primitive parameters at float32; sets the number of primitives.")
+@click.option("--budget-bytes", default=str(_D.budget_bytes), show_default=True,
+              help="Bytes for all per-primitive parameters at float32 (24576, 24KB, 1.5MB); sets the "
+                   "number of primitives.")
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True,
               help="Folder for render.png, primitives.png, kernels.png and metrics.json.")
 @click.option("--iters", type=int, default=_D.iters, show_default=True, help="Optimisation steps.")
@@ -45,6 +46,12 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
 
     if threads:
         torch.set_num_threads(threads)
+    from splatk.stages.bench import parse_bytes
+
+    try:
+        budget_bytes = parse_bytes(budget_bytes)
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="--budget-bytes") from None
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, lpips=not no_lpips)
     console = Console(stderr=True)

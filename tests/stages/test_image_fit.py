@@ -129,3 +129,18 @@ def test_cli_writes_metrics(tmp_path):
     assert (out / "primitives.png").is_file() and (out / "kernels.png").is_file()
     again = CliRunner().invoke(cli, args)
     assert again.exit_code == 2 and "overwrite" in again.output
+
+
+def test_cli_reads_byte_sizes_with_units(tmp_path):
+    from PIL import Image
+    from splatk_cli.main import cli
+
+    photo = tmp_path / "p.png"
+    Image.fromarray((_synthetic(32, 48).numpy() * 255).astype(np.uint8)).save(photo)
+    base = ["image", str(photo), "--kernel", "gaussian", "--iters", "2", "--downscale", "2", "--threads", "1",
+            "-q", "--no-lpips"]
+    res = CliRunner().invoke(cli, base + ["--budget-bytes", "1KB", "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "a" / "metrics.json").read_text())["num_primitives"] == 1024 // 32
+    bad = CliRunner().invoke(cli, base + ["--budget-bytes", "lots", "--out", str(tmp_path / "b")])
+    assert bad.exit_code == 2 and "byte size" in bad.output
