@@ -204,6 +204,8 @@ def test_planar_method_ids_are_distinct():
     assert "k" not in cfg.kernel_options
     with pytest.raises(ValueError, match="primitive"):
         fit_config_for({"primitive": "voxel"})
+    with pytest.raises(ValueError, match="no planar version"):  # before any training
+        fit_config_for({"kernel": "beta"}, planar)
 
 
 def test_planar_short_runs_scale_the_planar_kernels_options():

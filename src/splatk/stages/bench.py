@@ -38,6 +38,7 @@ import yaml
 
 from ..data import detect_format, load_scene
 from ..errors import InputError
+from ..kernels.planar import PLANAR_KERNELS
 from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
 from ..train.trainer import TrainConfig
@@ -215,6 +216,9 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
             raise ValueError(f"unknown method setting {key!r}")
     if cfg.primitive not in PRIMITIVES:
         raise ValueError(f"unknown primitive {cfg.primitive!r} (use {' or '.join(PRIMITIVES)})")
+    if cfg.primitive == "planar" and cfg.kernel not in PLANAR_KERNELS:
+        # refused here, before any training, rather than as a failed run per scene
+        raise ValueError(f"kernel {cfg.kernel!r} has no planar version (use {' or '.join(sorted(PLANAR_KERNELS))})")
     cfg.kernel_options = kernel_options
     cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
     if cfg.train.time_budget is not None:
