@@ -23,7 +23,8 @@ from splatk.stages.bench import (
 from .common import find_preset, parse_duration
 
 # single-valued flags that go into every method's defaults (flag name -> settings key)
-_DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backend", "seed", "sh_degree")
+_DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backend", "seed", "sh_degree",
+                  "primitive")
 
 
 @click.command("bench")
@@ -48,6 +49,8 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 @click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend.")
 @click.option("--seed", type=int, help="Random seed.")
 @click.option("--sh-degree", type=int, help="Maximum SH degree.")
+@click.option("--primitive", type=click.Choice(["volumetric", "planar"]),
+              help="Primitive type of every method (planar: gaussian and learned kernels only). [default: volumetric]")
 @click.option("--metrics", help="Comma-separated: psnr,ssim,lpips. [default: psnr,ssim,lpips]")
 @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), help="LPIPS network. [default: alex]")
 @click.option("--no-scale-schedules", is_flag=True,

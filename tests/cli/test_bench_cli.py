@@ -36,6 +36,14 @@ def test_bench_flags_run_resume_and_chart(scene, tmp_path):
     assert "reuse" in again.stderr and "      fit" not in again.stderr
 
 
+def test_bench_primitive_flag_runs_planar(scene, tmp_path):
+    res = _bench(scene, "--out", tmp_path, "--kernel", "gaussian", "--budget", "100", "--primitive", "planar",
+                 "--iters", "10", "--threads", "1", "--metrics", "psnr")
+    result = json.loads((tmp_path / "results" / "demo__planar-gaussian-sh-b100.json").read_text())
+    assert result["status"] == "ok" and result["config"]["primitive"] == "planar"
+    assert "demo / planar-gaussian-sh-b100" in res.stderr  # (the table may fold long ids)
+
+
 def test_bench_stability_cli(scene, tmp_path):
     res = _bench(scene, "--out", tmp_path, "--preset", "bench_quick", "--stability", "--iters", "20")
     matrix = json.loads((tmp_path / "stability" / "matrix_demo.json").read_text())

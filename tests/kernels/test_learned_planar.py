@@ -78,3 +78,18 @@ def test_cli_pretrain_planar(tmp_path):
     res = CliRunner().invoke(cli, ["pretrain", "--kind", "planar", "--out", str(out), "--steps", "5", "-q"])
     assert res.exit_code == 0, res.output
     assert json.loads(out.with_suffix(".json").read_text())["config"]["steps"] == 5
+
+
+def test_table_matches_the_row_major_decoder_with_gradients():
+    # table() is the feature-major form of sigmoid(logits(nodes, z_after)): same values, same
+    # gradients into z_after and every decoder weight (random upstream gradient), and no rows
+    k, za = _kernel_and_latents(m=5)
+    za.requires_grad_(True)
+    ref = torch.sigmoid(k.logits(k.nodes()[None], za[:, None, :])).reshape(-1, k.grid, k.grid)
+    new = k.table(za)
+    torch.testing.assert_close(new, ref, atol=1e-6, rtol=1e-5)
+    up = torch.randn(ref.shape, generator=torch.Generator().manual_seed(3))
+    inputs = [za, *k.dec.parameters()]
+    for g_new, g_ref in zip(torch.autograd.grad(new, inputs, up), torch.autograd.grad(ref, inputs, up)):
+        torch.testing.assert_close(g_new, g_ref, atol=1e-5, rtol=1e-4)
+    assert k.table(za[:0]).shape == (0, k.grid, k.grid)

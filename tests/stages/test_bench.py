@@ -174,3 +174,57 @@ def test_stability_matrix_2x2(scene, tmp_path):
     img = cv2.imread(str(tmp_path / "charts" / "stability_demo.png"))
     assert img is not None and img.shape[0] > 100
     assert (tmp_path / "charts" / "stability_demo.svg").is_file()
+
+
+# ---- planar primitives ------------------------------------------------------------------------
+def test_planar_bytes_per_primitive_counted_from_the_planar_model():
+    from splatk.kernels.planar import make_planar_kernel
+
+    gauss, _ = fit_config_for({"kernel": "gaussian", "budget_bytes": "1MB"}, {"sh_degree": 3, "primitive": "planar"})
+    learned, notes = fit_config_for({"kernel": "learned", "budget_bytes": "1MB"},
+                                    {"sh_degree": 3, "primitive": "planar"})
+    g_bytes, g_nets = bytes_per_primitive(gauss)
+    l_bytes, l_nets = bytes_per_primitive(learned)
+    assert g_bytes == 4 * (3 + 2 + 4 + 1 + 16 * 3) and g_nets == 0  # two in-plane scales
+    assert l_bytes == g_bytes + 4 * 10  # the 10-float latent z
+    assert l_nets == 4 * sum(p.numel() for p in make_planar_kernel("learned").parameters()) > 0
+    assert gauss.train.budget == 2**20 // g_bytes
+    assert learned.train.budget == (2**20 - l_nets) // l_bytes == notes["budget"]["budget"]
+
+
+def test_planar_method_ids_are_distinct():
+    planar = {"primitive": "planar"}
+    ids = [method_id({"kernel": "gaussian"}), method_id({"kernel": "gaussian", **planar}),
+           method_id({"kernel": "gaussian"}, planar), method_id({"kernel": "learned", "k": 2}),
+           method_id({"kernel": "learned", **planar})]
+    assert ids == ["gaussian-sh", "planar-gaussian-sh", "planar-gaussian-sh", "learned-k2-sh", "planar-learned-sh"]
+    # k is volumetric-only: it neither names nor configures a planar run
+    assert method_id({"kernel": "learned", "k": 4, "budget_bytes": "1MB"}, planar) == "planar-learned-sh-B1M"
+    cfg, _ = fit_config_for({"kernel": "learned", "k": 4}, {**planar, "iters": 30000})
+    assert "k" not in cfg.kernel_options
+    with pytest.raises(ValueError, match="primitive"):
+        fit_config_for({"primitive": "voxel"})
+    with pytest.raises(ValueError, match="no planar version"):  # before any training
+        fit_config_for({"kernel": "beta"}, planar)
+
+
+def test_planar_short_runs_scale_the_planar_kernels_options():
+    from splatk.kernels.planar import make_planar_kernel
+
+    cfg, notes = fit_config_for({"kernel": "learned", "primitive": "planar"}, {"iters": 3000})
+    assert cfg.kernel_options == {"freeze_iters": 200, "z_lr": pytest.approx(1e-3), "net_lr_mult": 10.0}
+    assert notes["scaled_schedules"]["z_lr"] == pytest.approx(1e-3)
+    kernel = make_planar_kernel(cfg.kernel, **cfg.kernel_options)  # every option is the planar kernel's
+    assert kernel.learning_rates() == {"z": pytest.approx(1e-3)} and kernel.freeze_iters == 200
+
+
+def test_tiny_planar_bench(scene, tmp_path):
+    cfg = BenchConfig(methods=[{"kernel": "gaussian"}, {"kernel": "learned", "budget_bytes": "64KB"}],
+                      defaults={**BASE, "primitive": "planar"}, metrics=("psnr",))
+    res = run_bench([scene], cfg, tmp_path, charts=False)
+    assert [r["method"] for r in res.rows] == ["planar-gaussian-sh", "planar-learned-sh-B64K"]
+    for r in res.rows:
+        assert r["status"] == "ok" and math.isfinite(r["psnr"]) and r["config"]["primitive"] == "planar"
+    learned = res.rows[1]
+    assert learned["num_primitives"] <= learned["derived"]["budget"]["budget"]
+    assert learned["footprint_mb"] * 2**20 <= 64 * 2**10

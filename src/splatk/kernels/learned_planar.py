@@ -90,9 +90,26 @@ class LearnedPlanarKernel(nn.Module):
         return torch.stack([uu, vv], -1).reshape(-1, 2)
 
     def table(self, z_after: torch.Tensor) -> torch.Tensor:
-        """[M, G, G] sigmoid(Phi_dec_planar) at the grid nodes (one batched call per view)."""
-        d = torch.sigmoid(self.logits(self.nodes()[None], z_after[:, None, :]))
-        return d.reshape(-1, self.grid, self.grid)
+        """[M, G, G] sigmoid(Phi_dec_planar) at the grid nodes (one batched call per view).
+
+        The same function as ``sigmoid(logits(nodes, z_after))``, laid out feature-major: the
+        hidden activations are [width, M*G*G] rather than [M*G*G, width]. With width 8 the
+        row-major form makes every matrix product a long, 8-wide one that BLAS (and the
+        weight gradients, a reduction over M*G*G rows) handle poorly; feature-major they are
+        8 long contiguous rows. Measured (7500 surfels, 8x8 grid, one thread, loaded 2-core
+        machine, medians of 7): forward + backward 60 -> 44 ms, forward without grad
+        18.5 -> 13.6 ms. The first layer splits into a per-primitive
+        part (z_after) plus a per-node part (u, v), added by broadcasting.
+        """
+        first, _, mid, _, last = self.dec
+        m, g2 = z_after.shape[0], self.grid * self.grid
+        a = F.linear(z_after, first.weight[:, 2:], first.bias)               # [M, C]
+        b = first.weight[:, :2] @ self.nodes().to(z_after).T                 # [C, G*G]
+        h = (a.T[:, :, None] + b[:, None, :]).reshape(a.shape[1], m * g2)    # [C, M*G*G]
+        h = F.leaky_relu(h, LEAKY_SLOPE)
+        h = F.leaky_relu(torch.addmm(mid.bias[:, None], mid.weight, h), LEAKY_SLOPE)
+        d = torch.sigmoid(torch.addmm(last.bias[:, None], last.weight, h))  # [1, M*G*G]
+        return d.reshape(m, self.grid, self.grid)
 
     def lookup(self, table: torch.Tensor, uv: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """Bilinear table lookup at uv [P, 2] of primitives idx [P]; 0 outside the unit disk."""

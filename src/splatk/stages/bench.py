@@ -17,6 +17,9 @@ A method is a dict of fit settings (see :func:`fit_config_for`)::
 
     {kernel: learned, k: 4, weights: none, color: sh, budget: 30000 | auto,
      budget_bytes: 4MB, iters: 3000, time_budget: 600, name: my-id, ...FitConfig/TrainConfig fields}
+
+``primitive: planar`` fits 2D surfels (:class:`~splatk.models.planar.PlanarModel`) with the
+planar kernel of that name; ``k`` is volumetric-only and is ignored there.
 """
 from __future__ import annotations
 
@@ -35,11 +38,13 @@ import yaml
 
 from ..data import detect_format, load_scene
 from ..errors import InputError
+from ..kernels.planar import PLANAR_KERNELS
+from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
 from ..train.trainer import TrainConfig
 from .autobudget import AutoBudgetConfig
 from .evaluate import run_eval
-from .fit import FitConfig, _color_options, run_fit
+from .fit import PRIMITIVES, FitConfig, _color_options, run_fit
 
 #: keys a method may have besides FitConfig / TrainConfig fields
 METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options")
@@ -51,8 +56,9 @@ LEARNED_FREEZE_ITERS = 2000
 SCALES_LR_MULT_MAX = 10.0
 #: ... and the learned kernel's latent and network LRs by 30k / iters, at most this much
 KERNEL_LR_MULT_MAX = 10.0
-#: the learned kernel's default z3d LR (kernels/learned.py)
-LEARNED_Z3D_LR = 1e-4
+#: the learned kernels' latent: (option name, default LR) per primitive type
+#: (kernels/learned.py z3d_lr, kernels/planar.py z_lr)
+LEARNED_LATENT_LR = {"volumetric": ("z3d_lr", 1e-4), "planar": ("z_lr", 1e-4)}
 RESULT_KEYS = ("psnr", "ssim", "lpips", "train_seconds", "render_ms", "footprint_mb", "num_primitives")
 
 _FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train"}
@@ -106,15 +112,25 @@ def expand_grid(grid: dict) -> list[dict]:
     return methods
 
 
-def method_id(method: dict) -> str:
-    """A readable, file-name-safe id that changes whenever the method's settings do."""
+def method_id(method: dict, defaults: dict | None = None) -> str:
+    """A readable, file-name-safe id that changes whenever the method's settings do.
+
+    Of ``defaults`` (the bench's shared settings) only the primitive type counts: a preset may
+    set ``primitive: planar`` for every method, and a planar result must never take the file
+    name of a volumetric one (ids of planar runs start with ``planar-``).
+    """
     if method.get("name"):
         return re.sub(r"[^A-Za-z0-9._+-]", "_", str(method["name"]))
     m = dict(method)
     kernel = m.pop("kernel", "gaussian")
-    parts = [kernel]
+    planar = m.pop("primitive", (defaults or {}).get("primitive", "volumetric")) == "planar"
+    # a planar run never shares an id (and so a result file) with a volumetric one
+    parts = ["planar", kernel] if planar else [kernel]
+    if planar:
+        m.pop("k", None)  # volumetric-only (fit_config_for ignores it too)
     if kernel == "learned":
-        parts.append(f"k{m.pop('k', 2)}")
+        if not planar:
+            parts.append(f"k{m.pop('k', 2)}")
         w = m.pop("weights", None)
         if w is not None and str(w).lower() == "none":
             parts.append("nopre")
@@ -157,10 +173,12 @@ def _human_bytes(n: int) -> str:
 
 
 def bytes_per_primitive(cfg: FitConfig) -> tuple[int, int]:
-    """(bytes per primitive, bytes of the global networks) of a model built with ``cfg``,
-    counted from the model itself: 4 x ``floats_per_primitive()`` and 4 x network parameters."""
-    model = SplatModel.from_points(torch.zeros(1, 3), torch.zeros(1, 3), kernel=cfg.kernel, color=cfg.color,
-                                   kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
+    """(bytes per primitive, bytes of the global networks) of the model `fit` builds with ``cfg``
+    (a PlanarModel for ``primitive: planar``), counted from the model itself:
+    4 x ``floats_per_primitive()`` and 4 x network parameters."""
+    model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
+    model = model_class.from_points(torch.zeros(1, 3), torch.zeros(1, 3), kernel=cfg.kernel, color=cfg.color,
+                                    kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
     return 4 * model.floats_per_primitive(), 4 * sum(p.numel() for p in model.kernel.parameters())
 
 
@@ -176,9 +194,10 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
     notes: dict = {}
     cfg = FitConfig()
     kernel_options = dict(spec.pop("kernel_options", None) or {})
+    planar = spec.get("primitive", "volumetric") == "planar"
     if "k" in spec:
         k = spec.pop("k")
-        if spec.get("kernel", "gaussian") == "learned":
+        if spec.get("kernel", "gaussian") == "learned" and not planar:  # the planar kernel has no k
             kernel_options["k"] = int(k)
     if "weights" in spec:
         w = spec.pop("weights")
@@ -195,6 +214,11 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
             setattr(cfg.train, key, value)
         else:
             raise ValueError(f"unknown method setting {key!r}")
+    if cfg.primitive not in PRIMITIVES:
+        raise ValueError(f"unknown primitive {cfg.primitive!r} (use {' or '.join(PRIMITIVES)})")
+    if cfg.primitive == "planar" and cfg.kernel not in PLANAR_KERNELS:
+        # refused here, before any training, rather than as a failed run per scene
+        raise ValueError(f"kernel {cfg.kernel!r} has no planar version (use {' or '.join(sorted(PLANAR_KERNELS))})")
     cfg.kernel_options = kernel_options
     cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
     if cfg.train.time_budget is not None:
@@ -231,10 +255,12 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
         if cfg.kernel == "learned":
             # the latents and networks get 30k / iters fewer steps, and their LRs decay over
             # the shorter run: raise them by that factor, at most x10 (cup / fox at 1/8, 2000
-            # iterations, learned k=4: z3d and network LR x10 gave +0.97 / +0.39 dB)
+            # iterations, learned k=4: z3d and network LR x10 gave +0.97 / +0.39 dB). The
+            # planar kernel has the same schedule options, its latent LR is called z_lr.
             boost = min(KERNEL_LR_MULT_MAX, 1 / s)
-            if "z3d_lr" not in kernel_options:
-                cfg.kernel_options["z3d_lr"] = scaled["z3d_lr"] = LEARNED_Z3D_LR * boost
+            latent_key, latent_lr = LEARNED_LATENT_LR[cfg.primitive]
+            if latent_key not in kernel_options:
+                cfg.kernel_options[latent_key] = scaled[latent_key] = latent_lr * boost
             if "net_lr_mult" not in kernel_options:
                 pretrained = str(kernel_options.get("weights", "default")).lower() != "none"
                 # without pretraining the paper's x10 already applies; do not stack the two
@@ -335,7 +361,7 @@ def run_one(
 
     A finished result is returned as it is, with ``"reused": True``.
     """
-    sname, mid = scene_name(scene), method_id(method)
+    sname, mid = scene_name(scene), method_id(method, cfg.defaults)
     result_path = root / "results" / f"{sname}__{mid}.json"
     info = {"scene": sname, "method": mid, "result": str(result_path)}
     spec = _normalise({**cfg.defaults, **method, "scale_schedules": cfg.scale_schedules})
@@ -462,7 +488,7 @@ def run_bench(
     if not cfg.methods:
         raise InputError(None, "no methods given", "pass --kernel/--budget flags or a bench YAML with methods")
     scenes = check_scenes(scenes)
-    ids = [method_id(m) for m in cfg.methods]
+    ids = [method_id(m, cfg.defaults) for m in cfg.methods]
     dup = {i for i in ids if ids.count(i) > 1}
     if dup:
         raise InputError(None, f"methods with the same id: {', '.join(sorted(dup))}", "give them a name:")
