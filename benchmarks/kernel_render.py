@@ -1,6 +1,7 @@
 """Render time of the learned kernel against the Gaussian on the same trained geometry.
 
     python benchmarks/kernel_render.py RUN [--views 10] [--reps 7] [--threads 2] [--out PATH]
+        [--downscale D]
 
 RUN is a finished `splatk fit` run with the Gaussian kernel (e.g. `splatk fit
 ../shared/data/lego --out runs/lego --budget 50000 --time-budget 10m`). The learned models
@@ -31,6 +32,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--downscale", type=float, help="render at this downscale (default: the run's)")
     args = ap.parse_args()
 
     import torch
@@ -44,7 +46,8 @@ def main() -> None:
     model, meta = load_model(Path(args.run) / "model.pt")
     if model.kernel.name != "gaussian":
         raise SystemExit(f"{args.run}: needs a run with the Gaussian kernel, found {model.kernel.name}")
-    scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1))
+    ds = args.downscale if args.downscale is not None else meta.get("downscale", 1)
+    scene = load_scene(meta["scene"], downscale=ds)
     cams = scene.test[: args.views]
     bg = torch.tensor(scene.background)
 
