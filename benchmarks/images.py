@@ -1,14 +1,15 @@
 """Image representation benchmark: learned vs gaussian vs gabor 2D splats at two byte budgets.
 
     python benchmarks/images.py [--downscale 4] [--iters 300] [--budgets 8192,24576]
-                                [--images kodim01,kodim05] [--jobs 2] [--out PATH]
+                                [--images kodim01,kodim05] [--latent-dim 2] [--jobs 2] [--out PATH]
 
 Fits every photo in ../shared/data/images with every kernel at every budget (`splatk image`'s
-stage, float32 bytes of the per-primitive parameters; the learned kernel's shared 740-byte
-decoder is listed apart), one process per fit with torch.set_num_threads(1), up to --jobs at a
-time. Prints a table of PSNR / SSIM / LPIPS per (budget, kernel), averaged over the photos, the
-per-photo PSNR, and the issue's targets (learned >= gaussian + 0.5 dB and >= gabor on average);
-writes every fit's metrics to benchmarks/results/images.json.
+stage, float32 bytes of the per-primitive parameters; the learned kernel's shared decoder,
+484 bytes at latent size 2, is listed apart), one process per fit with
+torch.set_num_threads(1), up to --jobs at a time. Prints a table of PSNR / SSIM / LPIPS per
+(budget, kernel), averaged over the photos, the per-photo PSNR, and the issue's targets
+(learned >= gaussian + 0.5 dB and >= gabor on average); writes every fit's metrics to
+benchmarks/results/images.json.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ from pathlib import Path
 from splatk.stages.image_fit import ImageFitConfig, run_image_fit
 a = json.loads(sys.argv[1])
 cfg = ImageFitConfig(kernel=a["kernel"], budget_bytes=a["budget"], iters=a["iters"], seed=a["seed"],
-                     downscale=a["downscale"])
+                     downscale=a["downscale"], latent_dim=a["latent_dim"])
 p = run_image_fit(Path(a["photo"]), Path(a["out"]), cfg, overwrite=True)
 print(p.read_text())
 """
@@ -64,9 +65,14 @@ def main() -> None:
     ap.add_argument("--images", default="", help="comma-separated stems (default: all six)")
     ap.add_argument("--kernels", default=",".join(KERNELS))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--latent-dim", type=int, default=None,
+                    help="learned kernel's latent floats per primitive (default: ImageFitConfig's)")
     ap.add_argument("--jobs", type=int, default=1, help="fits run at once (1 thread each)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     a = ap.parse_args()
+    if a.latent_dim is None:  # imported here: the parent process needs torch only for this default
+        from splatk.stages.image_fit import ImageFitConfig
+        a.latent_dim = ImageFitConfig.latent_dim
     photos = sorted(IMAGES.glob("*.png"))
     if a.images:
         want = set(a.images.split(","))
@@ -76,7 +82,7 @@ def main() -> None:
     t0 = time.time()
     with tempfile.TemporaryDirectory() as tmp:
         jobs = [{"photo": str(p), "kernel": k, "budget": b, "iters": a.iters, "seed": a.seed,
-                 "downscale": a.downscale, "out": f"{tmp}/{p.stem}_{k}_{b}"}
+                 "downscale": a.downscale, "latent_dim": a.latent_dim, "out": f"{tmp}/{p.stem}_{k}_{b}"}
                 for b in budgets for p in photos for k in kernels]
         with ThreadPoolExecutor(a.jobs) as pool:
             rows = []
@@ -88,6 +94,7 @@ def main() -> None:
     wall = time.time() - t0
     ok = [r for r in rows if "error" not in r]
     print(f"\n{len(photos)} photos, downscale {a.downscale}, {a.iters} iterations, seed {a.seed}, "
+          f"learned latent {a.latent_dim}, "
           f"wall {wall / 60:.1f} min\n")
     print(f"{'budget':>7} {'kernel':9} {'prims':>6} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'s/fit':>6}")
     summary = {}
@@ -114,6 +121,7 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps({
         "settings": {"downscale": a.downscale, "iters": a.iters, "budgets": budgets, "seed": a.seed,
+                     "latent_dim": a.latent_dim,
                      "images": [p.stem for p in photos], "kernels": kernels, "jobs": a.jobs,
                      "threads_per_fit": 1, "wall_seconds": wall, "machine": platform.platform(),
                      "command": " ".join(["python", "benchmarks/images.py"] + sys.argv[1:])},

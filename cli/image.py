@@ -31,12 +31,15 @@ _D = ImageFitConfig()
               help="Box-downscale the photo by this integer factor first.")
 @click.option("--grid", type=int, default=_D.grid, show_default=True,
               help="Learned kernel: decoder table nodes per axis (bilinear lookup).")
+@click.option("--latent-dim", type=int, default=_D.latent_dim, show_default=True,
+              help="Learned kernel: floats of each primitive's latent (fewer = more primitives per byte; "
+                   "0 = one shape shared by all splats).")
 @click.option("--exact", is_flag=True, help="Learned kernel: run the decoder per pixel (slow reference).")
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing result in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, exact, no_lpips,
-            overwrite, quiet):
+def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, exact,
+            no_lpips, overwrite, quiet):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
     The image is the plain sum of the splats (GaussianImage style); see
@@ -53,7 +56,8 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--budget-bytes") from None
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
-                         downscale=downscale, grid=grid, exact=exact, lpips=not no_lpips)
+                         downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
+                         lpips=not no_lpips)
     console = Console(stderr=True)
     progress = None if quiet else Progress(
         TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),

@@ -11,7 +11,8 @@ import torch
 from click.testing import CliRunner
 
 from splatk.backends.planar_torch import bilinear
-from splatk.models.image2d import (KERNELS, PlanarDecoder, Splats2D, decoder_floats,
+from splatk.errors import InputError
+from splatk.models.image2d import (KERNELS, LATENT_DIM, PlanarDecoder, Splats2D, decoder_floats,
                                    floats_per_primitive, num_primitives)
 from splatk.stages.image_fit import ImageFitConfig, fit_image
 
@@ -71,18 +72,24 @@ def test_render_table_matches_exact_mode():
     assert float((a - b).abs().max()) <= 0.1 * float(b.abs().max()) + 1e-6
 
 
-@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("kernel,latent_dim", [(k, 2) for k in KERNELS] + [("learned", 0), ("learned", 10)])
 @pytest.mark.parametrize("budget", [1000, 8192, 65536])
-def test_bytes_within_budget(kernel, budget):
-    n = num_primitives(kernel, budget)
-    m = Splats2D(kernel, max(n, 1), 8, 8)
+def test_bytes_within_budget(kernel, latent_dim, budget):
+    n = num_primitives(kernel, budget, latent_dim)
+    m = Splats2D(kernel, max(n, 1), 8, 8, latent_dim=latent_dim)
     per_prim = sum(p.numel() for name, p in m.named_parameters() if not name.startswith("decoder.")) // m.n
-    assert per_prim == floats_per_primitive(kernel)  # every per-primitive parameter is counted
+    assert per_prim == floats_per_primitive(kernel, latent_dim)  # every per-primitive parameter is counted
     assert n * 4 * per_prim <= budget < (n + 1) * 4 * per_prim
     assert m.describe_bytes()["bytes"] == m.n * 4 * per_prim
     if kernel == "learned":
-        assert decoder_floats() == sum(p.numel() for p in PlanarDecoder().parameters())
-        assert m.describe_bytes()["network_bytes"] == 4 * decoder_floats()
+        assert per_prim == 8 + latent_dim
+        assert decoder_floats(latent_dim) == sum(p.numel() for p in PlanarDecoder(latent_dim).parameters())
+        assert m.describe_bytes()["network_bytes"] == 4 * decoder_floats(latent_dim)
+
+
+def test_latent_dim_must_not_be_negative():
+    with pytest.raises(InputError):
+        fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=4000, iters=0, latent_dim=-1))
 
 
 def _synthetic(h=24, w=32):
@@ -123,12 +130,30 @@ def test_cli_writes_metrics(tmp_path):
     for key in ("psnr", "ssim", "lpips", "bytes", "num_primitives", "kernel", "iterations", "seconds"):
         assert key in m
     assert m["kernel"] == "learned" and m["iterations"] == 5
-    assert m["num_primitives"] == 2000 // 72 and m["bytes"] <= 2000
+    assert m["num_primitives"] == 2000 // (4 * (8 + LATENT_DIM)) and m["bytes"] <= 2000
     assert m["network_bytes"] == 4 * decoder_floats()
+    assert m["latent_dim"] == LATENT_DIM and m["config"]["latent_dim"] == LATENT_DIM
     assert Image.open(out / "render.png").size == (24, 16)
     assert (out / "primitives.png").is_file() and (out / "kernels.png").is_file()
     again = CliRunner().invoke(cli, args)
     assert again.exit_code == 2 and "overwrite" in again.output
+
+
+def test_cli_latent_dim_recorded(tmp_path):
+    from PIL import Image
+    from splatk_cli.main import cli
+
+    photo = tmp_path / "p.png"
+    Image.fromarray((_synthetic(32, 48).numpy() * 255).astype(np.uint8)).save(photo)
+    out = tmp_path / "run"
+    args = ["image", str(photo), "--kernel", "learned", "--budget-bytes", "2000", "--out", str(out),
+            "--latent-dim", "3", "--iters", "2", "--downscale", "2", "--threads", "1", "-q", "--no-lpips"]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["latent_dim"] == 3 and m["config"]["latent_dim"] == 3
+    assert m["bytes_per_primitive"] == 4 * (8 + 3) and m["num_primitives"] == 2000 // 44
+    assert m["network_bytes"] == 4 * decoder_floats(3) and m["network_floats"] == decoder_floats(3)
 
 
 def test_cli_reads_byte_sizes_with_units(tmp_path):

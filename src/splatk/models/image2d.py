@@ -16,9 +16,11 @@ Kernels k(u, v) (``E(u, v) = exp(-4.5 (u^2 + v^2))`` is the Gaussian envelope):
 * ``gabor``:    ``E * prod_{d in u, v} sum_k a_{k,d} cos(pi f_{k,d} d)``, K = 2 waves per axis
   with learned amplitudes and frequencies (Gabor splatting, peers.md Sec. 7.3, which picks
   frequencies from a bank; here they are continuous parameters).     8 + 8 = 16 floats
-* ``learned``:  ``E * Phi_dec_planar(u, v, z)`` with a per-primitive latent ``z`` (10 values)
-  and one global decoder (paper Eq. 9; 3 linear layers, 8 wide, leaky ReLU). For an image there
-  is no camera, so Phi_proj is the identity (``z_after = z``).            8 + 10 = 18 floats
+* ``learned``:  ``E * Phi_dec_planar(u, v, z)`` with a per-primitive latent ``z`` (L values,
+  default 2, ``latent_dim``; the paper's 10 buys fewer primitives than it is worth here) and one global decoder (paper Eq. 9; 3 linear layers, 8 wide, leaky
+  ReLU). For an image there is no camera, so Phi_proj is the identity (``z_after = z``).
+  ``latent_dim = 0`` leaves one learned shape shared by every splat (the Gaussian's bytes).
+                                                                         8 + L floats
 
 Learned-kernel choices (the paper leaves them open for images):
 
@@ -52,7 +54,12 @@ KERNELS = ("gaussian", "gabor", "learned")
 #: support in sigmas (GaussianImage uses 3)
 SUPPORT_SIGMAS = 3.0
 LEAKY_SLOPE = 0.01
-LATENT_DIM = 10
+#: per-primitive latent floats of the learned kernel. Measured (kodim05 + kodim23, downscale 4,
+#: 24 KiB, 200 iterations; benchmarks/results/image_latent_sweep.json): mean PSNR 23.89 dB at 10,
+#: 25.10 at 4, 25.45 at 2, 25.73 at 1, 26.10 at 0 (gaussian 26.10): at equal bytes each latent
+#: float costs primitives and pays back less. At 1000 iterations: 28.50 at 2, 28.45 at 1, 28.80
+#: at 0 (gaussian 28.67). 2 is the best size that keeps a per-primitive shape; 0 shares one.
+LATENT_DIM = 2
 DEC_WIDTH = 8
 GABOR_WAVES = 2
 #: largest bbox half-size in pixels (bounds the pairs of a huge splat; its tail is cut there)
@@ -61,23 +68,23 @@ MAX_RADIUS = 64
 CHUNK_PAIRS = 2_000_000
 
 
-def floats_per_primitive(kernel: str) -> int:
+def floats_per_primitive(kernel: str, latent_dim: int = LATENT_DIM) -> int:
     """Every per-primitive float: xy 2 + Cholesky 3 + colour 3 + the kernel's own."""
-    extra = {"gaussian": 0, "gabor": 4 * GABOR_WAVES, "learned": LATENT_DIM}
+    extra = {"gaussian": 0, "gabor": 4 * GABOR_WAVES, "learned": latent_dim}
     if kernel not in extra:
         raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
     return 8 + extra[kernel]
 
 
-def decoder_floats() -> int:
+def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
     """Floats of the shared Phi_dec_planar (amortised over all primitives, stated apart)."""
-    i, w = 2 + LATENT_DIM, DEC_WIDTH
+    i, w = 2 + latent_dim, DEC_WIDTH
     return (i * w + w) + (w * w + w) + (w + 1)
 
 
-def num_primitives(kernel: str, budget_bytes: int) -> int:
+def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM) -> int:
     """Primitives that fit in ``budget_bytes`` at float32 (network bytes not included)."""
-    return int(budget_bytes) // (4 * floats_per_primitive(kernel))
+    return int(budget_bytes) // (4 * floats_per_primitive(kernel, latent_dim))
 
 
 class PlanarDecoder(nn.Module):
@@ -111,11 +118,13 @@ class Splats2D(nn.Module):
         height, width: image size in pixels.
         grid: table nodes per axis of the learned kernel (4 to 8 are sensible).
         exact: learned kernel only: evaluate Phi_dec_planar per pixel instead of the table.
+        latent_dim: learned kernel only: floats of each primitive's latent z.
         generator: for the random init (means uniform, colours uniform in [0, 0.1]).
     """
 
     def __init__(self, kernel: str, n: int, height: int, width: int, grid: int = 8,
-                 exact: bool = False, generator: torch.Generator | None = None):
+                 exact: bool = False, generator: torch.Generator | None = None,
+                 latent_dim: int = LATENT_DIM):
         super().__init__()
         if kernel not in KERNELS:
             raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
@@ -123,6 +132,9 @@ class Splats2D(nn.Module):
             raise ValueError(f"need at least one primitive, got {n}")
         self.kernel, self.n, self.height, self.width = kernel, int(n), int(height), int(width)
         self.grid, self.exact = int(grid), bool(exact)
+        if kernel == "learned" and latent_dim < 0:
+            raise ValueError(f"latent_dim must be >= 0, got {latent_dim}")
+        self.latent_dim = int(latent_dim)
         gen = generator
         self.xy_raw = nn.Parameter(torch.atanh(torch.rand(n, 2, generator=gen) * 1.96 - 0.98))
         # initial sigma: splats tile the image about twice over
@@ -137,8 +149,8 @@ class Splats2D(nn.Module):
             freqs[..., 1:] = 0.5 + 2.0 * torch.rand(n, 2, GABOR_WAVES - 1, generator=gen)
             self.gabor_freqs = nn.Parameter(freqs)
         if kernel == "learned":
-            self.latents = nn.Parameter(0.1 * torch.randn(n, LATENT_DIM, generator=gen))
-            self.decoder = PlanarDecoder()
+            self.latents = nn.Parameter(0.1 * torch.randn(n, latent_dim, generator=gen))
+            self.decoder = PlanarDecoder(latent_dim)
 
     # ---- geometry -------------------------------------------------------------------------
     def means_px(self) -> Tensor:
@@ -229,6 +241,6 @@ class Splats2D(nn.Module):
 
     def describe_bytes(self) -> dict:
         """Honest storage at float32: per-primitive bytes and (learned) the shared decoder."""
-        per = 4 * floats_per_primitive(self.kernel)
+        per = 4 * floats_per_primitive(self.kernel, self.latent_dim)
         return {"bytes": per * self.n, "bytes_per_primitive": per,
-                "network_bytes": 4 * decoder_floats() if self.kernel == "learned" else 0}
+                "network_bytes": 4 * decoder_floats(self.latent_dim) if self.kernel == "learned" else 0}

@@ -2,10 +2,10 @@
 
 The number of primitives is ``budget_bytes // (4 * floats per primitive)`` (see
 :func:`splatk.models.image2d.floats_per_primitive`); the learned kernel's shared decoder
-(185 floats, 740 bytes) is reported apart as ``network_bytes``. Training follows GaussianImage
-(peers.md Sec. 7.1): random init, L2 loss on the unclamped sum, Adam; with a few hundred to a
-few thousand CPU iterations instead of 50k, the learning rates are larger than its 1e-3 and
-decay 10x over the run (cosine).
+(121 floats, 484 bytes at the default latent size 2) is reported apart as ``network_bytes``.
+Training follows GaussianImage (peers.md Sec. 7.1): random init, L2 loss on the unclamped sum,
+Adam; with a few hundred to a few thousand CPU iterations instead of 50k, the learning rates are
+larger than its 1e-3 and decay 10x over the run (cosine).
 
 Writes into OUT: ``render.png`` (the reconstruction), ``primitives.png`` (each splat's
 1-sigma ellipse outlined in its colour), ``kernels.png`` (the kernel of the 16 largest splats
@@ -25,7 +25,7 @@ import torch
 
 from ..errors import InputError
 from ..metrics import compute_metrics, lpips_available
-from ..models.image2d import KERNELS, Splats2D, decoder_floats, num_primitives
+from ..models.image2d import KERNELS, LATENT_DIM, Splats2D, decoder_floats, num_primitives
 
 
 @dataclass
@@ -46,6 +46,9 @@ class ImageFitConfig:
     grid: int = 8
     #: learned kernel: evaluate the decoder per pixel instead of the table (slow reference)
     exact: bool = False
+    #: learned kernel: floats of each primitive's latent (fewer floats = more primitives per byte;
+    #: 0 = one learned shape shared by all splats)
+    latent_dim: int = LATENT_DIM
     # Learning rates: measured on kodim05 (downscale 4, 8 KiB, 300 iterations), 2x these
     # (5e-3, 2e-2, 1e-2, 1e-2, 2e-3) gave gaussian 20.08 dB -> 20.79 dB, learned 18.68 -> 18.88 dB.
     #: Adam learning rate of the means (tanh space: 1e-2 is about W/200 px per step)
@@ -108,7 +111,9 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
     """Fit splats to ``target`` [H, W, 3]; returns the model and a summary (psnr, seconds...)."""
     if cfg.kernel not in KERNELS:
         raise InputError(None, f"unknown kernel {cfg.kernel!r}", f"choose from {', '.join(KERNELS)}")
-    n = num_primitives(cfg.kernel, cfg.budget_bytes)
+    if cfg.kernel == "learned" and cfg.latent_dim < 0:
+        raise InputError(None, f"latent_dim must be >= 0, got {cfg.latent_dim}")
+    n = num_primitives(cfg.kernel, cfg.budget_bytes, cfg.latent_dim)
     if n < 1:
         raise InputError(None, f"budget of {cfg.budget_bytes} bytes holds no {cfg.kernel} primitive",
                          "raise --budget-bytes")
@@ -117,7 +122,8 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
     h, w = target.shape[:2]
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
-    model = Splats2D(cfg.kernel, n, h, w, grid=cfg.grid, exact=cfg.exact, generator=gen)
+    model = Splats2D(cfg.kernel, n, h, w, grid=cfg.grid, exact=cfg.exact, generator=gen,
+                     latent_dim=cfg.latent_dim)
     s0 = float(model.chol[0, 0].detach())
     opt = _optimizer(model, cfg, s0)
     t0 = time.perf_counter()
@@ -212,7 +218,8 @@ def run_image_fit(photo: Path, out: Path, cfg: ImageFitConfig, overwrite: bool =
         "kernel": cfg.kernel, "iterations": cfg.iters, "seconds": summary["seconds"],
         "bytes_per_primitive": sizes["bytes_per_primitive"], "budget_bytes": cfg.budget_bytes,
         "network_bytes": sizes["network_bytes"],
-        "network_floats": decoder_floats() if cfg.kernel == "learned" else 0,
+        "network_floats": decoder_floats(cfg.latent_dim) if cfg.kernel == "learned" else 0,
+        "latent_dim": cfg.latent_dim if cfg.kernel == "learned" else 0,
         "image": str(photo), "height": int(target.shape[0]), "width": int(target.shape[1]),
         "config": asdict(cfg),
     }
