@@ -143,6 +143,10 @@ def test_short_runs_scale_schedules():
     full, _ = fit_config_for({"kernel": "learned"}, {"iters": 3000}, scale_schedules=False)
     assert full.train.refine_start == 500 and "freeze_iters" not in full.kernel_options
     assert full.train.scales_lr_mult == 1.0
+    fit_lrs, _ = fit_config_for({"kernel": "learned", "k": 4}, {"iters": 3000}, scale_lrs=False)
+    assert fit_lrs.train.refine_every == 10  # schedules still scaled...
+    assert fit_lrs.train.scales_lr_mult == 1.0 and "z3d_lr" not in fit_lrs.kernel_options  # ...LRs not
+    assert "net_lr_mult" not in fit_lrs.kernel_options
 
 
 def test_classify_flags_runs_that_end_below_their_start():
@@ -155,9 +159,9 @@ def test_classify_flags_runs_that_end_below_their_start():
 def test_stability_matrix_2x2(scene, tmp_path):
     kernels = {"gaussian": {"kernel": "gaussian"}, "learned-k2": {"kernel": "learned", "k": 2}}
     # the demo scene has no SfM points, so the sfm-init column is "not applicable";
-    # lr x 1e5 makes the trainer roll back NaNs and the run end below its start (with the
-    # log-scale LR of a long run: the short-run boost lets the gaussian recover in 30 steps)
-    conditions = {"sfm-init": {"init": "sfm"}, "lr-x1e5": {"lr_scale": 1e5, "scales_lr_mult": 1.0}}
+    # lr x 1e5 makes the trainer roll back NaNs and the run end below its start (the matrix
+    # keeps fit's learning rates: no short-run boost)
+    conditions = {"sfm-init": {"init": "sfm"}, "lr-x1e5": {"lr_scale": 1e5}}
     cfg = BenchConfig(defaults={**BASE, "iters": 30}, metrics=("psnr",))
     res = run_stability([scene], cfg, tmp_path, kernels=kernels, conditions=conditions)
     matrix = json.loads((tmp_path / "stability" / "matrix_demo.json").read_text())
