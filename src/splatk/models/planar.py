@@ -18,10 +18,11 @@ from ..colors import ColorModel, make_color_model
 from ..functional.projection import quats_to_rotmats
 from ..kernels import ViewContext
 from ..kernels.planar import PlanarKernel, make_planar_kernel
+from .base import PrimitiveModel
 from .volumetric import RenderResult, knn_mean_sq_dist
 
 
-class PlanarModel(nn.Module):
+class PlanarModel(PrimitiveModel):
     """A scene of N planar primitives.
 
     ``self.prims``: means [N, 3], log_scales [N, 2], quats [N, 4] (w, x, y, z; columns 0 and 1
@@ -30,12 +31,6 @@ class PlanarModel(nn.Module):
     """
 
     primitive = "planar"
-
-    def __init__(self, kernel: PlanarKernel, color: ColorModel, prims: dict[str, torch.Tensor]):
-        super().__init__()
-        self.kernel = kernel
-        self.color = color
-        self.prims = nn.ParameterDict({k: nn.Parameter(v.contiguous()) for k, v in prims.items()})
 
     @classmethod
     def from_points(
@@ -68,41 +63,13 @@ class PlanarModel(nn.Module):
         prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
         return cls(kernel, color, prims)
 
-    # ---- accessors (as SplatModel) ------------------------------------------------------
-    @property
-    def num_primitives(self) -> int:
-        return self.prims["means"].shape[0]
-
-    @property
-    def scales(self) -> torch.Tensor:
-        """[N, 2] in-plane sigmas."""
-        return torch.exp(self.prims["log_scales"])
-
+    # ---- accessors (the rest: PrimitiveModel; scales are the [N, 2] in-plane sigmas) ------
     @property
     def scales_3d(self) -> torch.Tensor:
         """[N, 3] scales with 0 along the normal: a disk has no thickness (used for the shape of
         MCMC's position noise, which so stays in each disk's plane)."""
         s = self.scales
         return torch.cat([s, torch.zeros_like(s[:, :1])], 1)
-
-    @property
-    def opacities(self) -> torch.Tensor:
-        return torch.sigmoid(self.prims["opacity_logits"])
-
-    def floats_per_primitive(self) -> int:
-        return sum(int(v[0].numel()) for v in self.prims.values())
-
-    def footprint_bytes(self) -> int:
-        """float32 bytes of everything stored: per-primitive parameters and global networks."""
-        per_prim = 4 * self.floats_per_primitive() * self.num_primitives
-        nets = 4 * sum(p.numel() for p in self.kernel.parameters())
-        return per_prim + nets
-
-    def learning_rates(self) -> dict[str, float]:
-        lrs = {"log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05}  # as SplatModel
-        lrs.update(self.color.learning_rates())
-        lrs.update(self.kernel.learning_rates())
-        return lrs
 
     # ---- rendering ----------------------------------------------------------------------
     def render(self, camera, background: torch.Tensor, sh_degree: int = 3,

@@ -4,31 +4,25 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch import nn
 
 from ..backends import RasterOutput, rasterize, resolve_backend
 from ..backends.fused_cpu import project_ellipsoids_fused, use_fused
 from ..colors import ColorModel, make_color_model
 from ..functional.projection import project_ellipsoids
 from ..kernels import Kernel, ViewContext, make_kernel
+from .base import PrimitiveModel
 
 #: geometric per-primitive parameters every volumetric model has (raw, pre-activation)
 GEOMETRY_PARAMS = ("means", "log_scales", "quats", "opacity_logits")
 
 
-class SplatModel(nn.Module):
+class SplatModel(PrimitiveModel):
     """A scene of N volumetric primitives.
 
     Per-primitive tensors (first dim N) live in ``self.prims``: means [N, 3], log_scales [N, 3],
     quats [N, 4] (w, x, y, z), opacity_logits [N], plus the colour model's and the kernel's.
     Global networks (the learned kernel's MLPs) are parameters of ``self.kernel``.
     """
-
-    def __init__(self, kernel: Kernel, color: ColorModel, prims: dict[str, torch.Tensor]):
-        super().__init__()
-        self.kernel = kernel
-        self.color = color
-        self.prims = nn.ParameterDict({k: nn.Parameter(v.contiguous()) for k, v in prims.items()})
 
     # ---- construction -------------------------------------------------------------------
     @classmethod
@@ -60,34 +54,6 @@ class SplatModel(nn.Module):
         prims.update(color.init_primitive_params(colors.float().clamp(0, 1)))
         prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
         return cls(kernel, color, prims)
-
-    # ---- accessors ----------------------------------------------------------------------
-    @property
-    def num_primitives(self) -> int:
-        return self.prims["means"].shape[0]
-
-    @property
-    def scales(self) -> torch.Tensor:
-        return torch.exp(self.prims["log_scales"])
-
-    @property
-    def opacities(self) -> torch.Tensor:
-        return torch.sigmoid(self.prims["opacity_logits"])
-
-    def floats_per_primitive(self) -> int:
-        return sum(int(v[0].numel()) for v in self.prims.values())
-
-    def footprint_bytes(self) -> int:
-        """float32 bytes of everything stored: per-primitive parameters and global networks."""
-        per_prim = 4 * self.floats_per_primitive() * self.num_primitives
-        nets = 4 * sum(p.numel() for p in self.kernel.parameters())
-        return per_prim + nets
-
-    def learning_rates(self) -> dict[str, float]:
-        lrs = {"log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05}  # 3DGS-MCMC
-        lrs.update(self.color.learning_rates())
-        lrs.update(self.kernel.learning_rates())
-        return lrs
 
     # ---- rendering ----------------------------------------------------------------------
     def render(
