@@ -67,6 +67,20 @@ class Kernel(nn.Module):
         return 1.0
 
 
+def read_weights_file(path, fmt: str, what: str, remake: str) -> dict:
+    """The dict a `splatk pretrain` weights file holds, checked to be of format ``fmt``; bad files
+    raise an InputError naming the file (``what``: the kind of file, ``remake``: the command)."""
+    from ..errors import InputError
+
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(path, f"cannot read {what} weights ({type(e).__name__})", f"re-run `{remake}`") from e
+    if not isinstance(obj, dict) or obj.get("format") != fmt:
+        raise InputError(path, f"not a {what} weights file", f"make one with `{remake}`")
+    return obj
+
+
 KERNELS: dict[str, type[Kernel]] = {}
 
 

@@ -44,7 +44,7 @@ from torch import nn
 
 from ..backends import Profile
 from ..backends.fused_cpu import learned_decode_fused, learned_encode_fused
-from .base import Kernel, ViewContext, register_kernel
+from .base import Kernel, ViewContext, read_weights_file, register_kernel
 
 #: the shipped pretrained networks (cosine target, default architecture), made by
 #: ``splatk pretrain --target cosine --out src/splatk/assets/learned_cosine.pt``
@@ -270,13 +270,7 @@ class LearnedKernel(Kernel):
         from ..errors import InputError
 
         path = Path(path)
-        try:
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:
-            raise InputError(path, f"cannot read learned-kernel weights ({type(e).__name__})",
-                             "re-run `splatk pretrain`") from e
-        if not isinstance(obj, dict) or obj.get("format") != WEIGHTS_FORMAT:
-            raise InputError(path, "not a learned-kernel weights file", "make one with `splatk pretrain`")
+        obj = read_weights_file(path, WEIGHTS_FORMAT, "learned-kernel", "splatk pretrain")
         theirs = {n: obj["options"].get(n) for n in ARCH_OPTIONS}
         theirs["proj_inputs"] = ",".join(parse_proj_inputs(theirs["proj_inputs"]))
         ours = self.arch_options()

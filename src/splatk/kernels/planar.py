@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..backends.planar_torch import PlanarProfile
-from .base import ViewContext
+from .base import ViewContext, read_weights_file
 from .learned_planar import LearnedPlanarKernel
 
 #: weights made by ``splatk pretrain --kind planar --steps 10000 --out src/splatk/assets/learned_planar.pt``
@@ -113,14 +113,8 @@ class SurfelLearnedKernel(PlanarKernel):
         if not path.is_file():
             raise InputError(path, "planar learned-kernel weights file not found",
                              "make it with `splatk pretrain --kind planar` or pass weights: none")
-        try:
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:
-            raise InputError(path, f"cannot read planar kernel weights ({type(e).__name__})",
-                             "re-run `splatk pretrain --kind planar`") from e
-        if not isinstance(obj, dict) or obj.get("format") != PLANAR_WEIGHTS_FORMAT:
-            raise InputError(path, "not a planar learned-kernel weights file",
-                             "make one with `splatk pretrain --kind planar`")
+        obj = read_weights_file(path, PLANAR_WEIGHTS_FORMAT, "planar learned-kernel",
+                                "splatk pretrain --kind planar")
         try:
             self.net.load_state_dict(obj["state_dict"])
         except RuntimeError as e:
