@@ -166,6 +166,10 @@ def test_cpu_render_matches_torch_render(kernel):
     for k in grads[0]:
         assert _rel(grads[0][k], grads[1][k]) < 1e-3, k
     with torch.no_grad():  # eval renders (the learned kernel's native encode / decode)
+        if kernel == "learned":  # Phi_proj in bf16 where the CPU has it: native vs autocast rounding
+            a, b = (m.render(cam, bg, sh_degree=3, backend=be).image for be in ("cpu", "torch"))
+            assert _rel(a, b) < 1e-3
+            m.kernel.proj_precision = "fp32"
         a, b = (m.render(cam, bg, sh_degree=3, backend=be).image for be in ("cpu", "torch"))
     assert _rel(a, b) < 1e-5
 
@@ -202,3 +206,50 @@ def test_learned_fused_ops_refuse_gradients():
     mu = torch.rand(4, 3, requires_grad=True)
     with pytest.raises(RuntimeError, match="no backward"):
         learned_encode_fused(None, mu, torch.rand(4, 3), torch.rand(4, 3, 3), True, True, True, 2.5, 5.0, 2.5)
+
+
+@pytest.mark.parametrize("inputs,arch", [("z,mu,s,R", {}), ("mu,s", {}), ("R,z", {}),
+                                         ("z,mu,s,R", {"proj_width": 40, "latent2d_dim": 3})])
+def test_learned_bf16_profile_matches_autocast(inputs, arch):
+    """The native bf16 Phi_proj (one pass: encode, Phi_proj, Phi_dec) computes what torch's CPU
+    autocast computes: same profile up to bf16 rounding, and exactly as far from fp32 on average
+    (a wrong weight layout or activation would be off by orders of magnitude more)."""
+    from splatk.backends.fused_cpu import bf16_mlp_available
+    from splatk.kernels import ViewContext, make_kernel
+
+    if not bf16_mlp_available():
+        pytest.skip("native build without AVX-512 BF16")
+    g = torch.Generator().manual_seed(2)
+    m = 300  # not a multiple of the 16-row blocks
+    mu = torch.randn(m, 3, generator=g) * 2 + torch.tensor([0, 0, 5.0])
+    view = ViewContext(mu, torch.rand(m, 3, generator=g) * 0.3 + 1e-4,
+                       torch.linalg.qr(torch.randn(m, 3, 3, generator=g))[0])
+    fused = ViewContext(view.means_cam, view.scales, view.rotmats_cam, fused=True)
+    for k in (2, 8):
+        kern = make_kernel("learned", k=k, proj_inputs=inputs, weights="none", proj_precision="bf16", **arch)
+        prims = {"z3d": torch.randn(m, kern.latent_dim, generator=g)} if "z" in inputs else {}
+        with torch.no_grad():
+            native = kern.profile(prims, fused).params
+            autocast = kern.profile(prims, view).params
+            kern.proj_precision = "fp32"
+            exact = kern.profile(prims, view).params
+        assert native.shape == (m, k)
+        assert (native - autocast).abs().max() < 1e-2
+        err_native, err_autocast = (native - exact).abs().mean(), (autocast - exact).abs().mean()
+        assert err_native <= 1.2 * err_autocast + 1e-5, (err_native, err_autocast)
+
+
+def test_learned_bf16_profile_handles_empty_and_single_rows():
+    from splatk.backends.fused_cpu import bf16_mlp_available
+    from splatk.kernels import ViewContext, make_kernel
+
+    if not bf16_mlp_available():
+        pytest.skip("native build without AVX-512 BF16")
+    kern = make_kernel("learned", k=4, proj_precision="bf16")
+    for m in (0, 1, 17):
+        cam = (torch.rand(m, 3) + torch.tensor([0, 0, 3.0]), torch.rand(m, 3) * 0.1 + 0.01,
+               torch.eye(3).expand(m, 3, 3).contiguous())
+        with torch.no_grad():
+            d = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, fused=True)).params
+            ref = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam)).params
+        assert d.shape == (m, 4) and (m == 0 or (d - ref).abs().max() < 1e-2)

@@ -164,3 +164,28 @@ def learned_decode_fused(z2d, layers, radii2, slope: float) -> torch.Tensor:
                                     for l in layers]
     return _ext().learned_decode(z2d.float().contiguous(), w1, b1, w2, b2, w3, b3,
                                  radii2.float().contiguous(), slope, torch.get_num_threads())
+
+
+def bf16_mlp_available() -> bool:
+    """Whether the native build has :func:`learned_profile_fused` (AVX-512 BF16 at build time)."""
+    ext = cpu_native.load_extension()
+    return ext is not None and bool(ext.has_bf16_mlp())
+
+
+def learned_profile_fused(z3d, means_cam, scales, rotmats_cam, use_mu: bool, use_s: bool, use_R: bool,
+                          dist_scale: float, angle_shift: float, angle_scale: float,
+                          proj_layers, dec_layers, radii2, slope: float) -> torch.Tensor:
+    """``LearnedKernel.profile`` with Phi_proj in bf16 (what CPU autocast computes), in one
+    native pass: encode -> Phi_proj -> Phi_dec at ``radii2``: [M, P]. ``proj_layers`` are
+    Phi_proj's ``nn.Linear`` (leaky ReLU between them), ``dec_layers`` Phi_dec's three.
+    No gradients."""
+    params = [p for l in (*proj_layers, *dec_layers) for p in l.parameters()]
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                       for t in (z3d, means_cam, scales, rotmats_cam, *params)):
+        raise RuntimeError("learned_profile_fused has no backward; call it under torch.no_grad()")
+    c = lambda t: None if t is None else t.detach().float().contiguous()  # noqa: E731
+    (w1, b1), (w2, b2), (w3, b3) = [(c(l.weight), c(l.bias)) for l in dec_layers]
+    return _ext().learned_profile(c(z3d), c(means_cam), c(scales), c(rotmats_cam), use_mu, use_s, use_R,
+                                  dist_scale, angle_shift, angle_scale,
+                                  [c(l.weight) for l in proj_layers], [c(l.bias) for l in proj_layers],
+                                  w1, b1, w2, b2, w3, b3, c(radii2), slope, torch.get_num_threads())

@@ -43,7 +43,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backends import Profile
-from ..backends.fused_cpu import learned_decode_fused, learned_encode_fused
+from ..backends.fused_cpu import (bf16_mlp_available, learned_decode_fused, learned_encode_fused,
+                                  learned_profile_fused)
 from .base import Kernel, ViewContext, read_weights_file, register_kernel
 
 #: the shipped pretrained networks (cosine target, default architecture), made by
@@ -363,6 +364,15 @@ class LearnedKernel(Kernel):
     def profile(self, prims, view: ViewContext) -> Profile:
         """Samples d_i = Phi_dec(r_i^2, z2d) at r_i = i / (k - 1) (paper Eq. 7): table [M, k]."""
         self._check_weights()
+        if (view.fused and not torch.is_grad_enabled() and _use_bf16(self.proj_precision, False)
+                and bf16_mlp_available()):
+            # encode, Phi_proj in bf16 and Phi_dec in one native pass (the values of the path below)
+            table = learned_profile_fused(
+                prims.get("z3d") if "z" in self.inputs else None, view.means_cam, view.scales,
+                view.rotmats_cam, "mu" in self.inputs, "s" in self.inputs, "R" in self.inputs,
+                LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE,
+                [m for m in self.proj if isinstance(m, nn.Linear)], self.dec[0::2], self.radii2, LEAKY_SLOPE)
+            return Profile("table", table)
         z2d = self.project(prims.get("z3d"), view)
         if view.fused and not torch.is_grad_enabled():  # one native pass (same values)
             first, _, mid, _, last = self.dec
