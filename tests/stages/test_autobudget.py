@@ -147,3 +147,17 @@ def test_resume_inside_a_control_branch_gives_the_uninterrupted_result(scene, tm
     for a, b in zip(rep["stages"][1:], whole["stages"][1:]):
         assert a["control_psnr"] == pytest.approx(b["control_psnr"], abs=1e-3)
         assert a["holdout_psnr"] == pytest.approx(b["holdout_psnr"], abs=1e-3)
+
+
+def test_random_init_starts_at_a_quarter_of_the_budget(scene):
+    """Random points start at a quarter of the budget so that MCMC grows the model (the growth
+    carries primitives out of the init box); --budget auto starts at its first stage's budget,
+    and an explicit random_points wins."""
+    sc = load_scene(scene)
+    plain = FitConfig(sh_degree=1, backend="torch", train=TrainConfig(budget=400, init="random"))
+    assert build_model(sc, plain).num_primitives == 100
+    assert plain.train.random_points is None  # the rule, not a number, is the setting
+    auto = _cfg(threshold=0.0)
+    assert build_model(sc, auto, budget=50).num_primitives == 50
+    fixed = FitConfig(sh_degree=1, backend="torch", train=TrainConfig(budget=400, init="random", random_points=300))
+    assert build_model(sc, fixed).num_primitives == 300

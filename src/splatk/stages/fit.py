@@ -176,8 +176,12 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
     budget = cfg.train.budget if budget is None else budget
     if cfg.train.init == "auto":  # recorded resolved, so config.yaml says what ran
         cfg.train.init = "sfm" if scene.points.shape[0] > 0 else "random"
-    pts, cols = initial_points(scene, cfg.train.init, budget, cfg.train.random_points,
-                               cfg.train.seed)
+    n_random = cfg.train.random_points
+    if n_random is None:
+        # a quarter of the budget, for MCMC to grow (TrainConfig.random_points); --budget auto
+        # starts full, since each of its stages compares models that filled their budgets
+        n_random = budget if cfg.auto_budget is not None else max(1, budget // 4)
+    pts, cols = initial_points(scene, cfg.train.init, budget, n_random, cfg.train.seed)
     # Random points start 10x smaller than their neighbour spacing (3DGS-MCMC's init_scale 0.1):
     # at full spacing they blanket every view and take thousands of iterations to clear.
     # That 0.1 is for a 3-sigma Gaussian support; kernels whose support ends at 1 sigma (Beta,

@@ -38,7 +38,11 @@ class TrainConfig:
     budget: int = 100_000
     #: sfm | random | auto (sfm when the scene has SfM points, else random)
     init: str = "auto"
-    random_points: int = 100_000
+    #: random init: number of points (None: a quarter of the budget). MCMC then grows the model
+    #: to the budget, and the growth is what carries primitives out of the init box to the
+    #: background: on fox (1/8 resolution, 2000 iterations, 50k budget) starting at the budget
+    #: gave 24.40 dB, at a quarter 26.65 dB. 3DGS-MCMC starts at a tenth or less of its cap.
+    random_points: int | None = None
     #: initial scale = init_scale x neighbour spacing (0: 0.1 for random init, 1 for SfM as DBS)
     init_scale: float = 0.0
     seed: int = 0
