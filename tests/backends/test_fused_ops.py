@@ -253,3 +253,17 @@ def test_learned_bf16_profile_handles_empty_and_single_rows():
             d = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, fused=True)).params
             ref = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam)).params
         assert d.shape == (m, 4) and (m == 0 or (d - ref).abs().max() < 1e-2)
+
+
+def test_learned_profile_wider_than_native_buffers_falls_back_to_torch():
+    from splatk.kernels import ViewContext, make_kernel
+
+    kern = make_kernel("learned", k=2, proj_width=300, weights="none", proj_precision="bf16")
+    assert not kern._fits_native_profile()
+    m = 20
+    cam = (torch.rand(m, 3) + torch.tensor([0, 0, 3.0]), torch.rand(m, 3) * 0.1 + 0.01,
+           torch.eye(3).expand(m, 3, 3).contiguous())
+    with torch.no_grad():
+        a = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, fused=True)).params
+        b = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam)).params
+    assert torch.equal(a, b)

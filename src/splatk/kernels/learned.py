@@ -361,11 +361,17 @@ class LearnedKernel(Kernel):
         return phi_dec(first.weight, first.bias, mid.weight, mid.bias, last.weight, last.bias,
                        z2d, r2, logits)
 
+    def _fits_native_profile(self) -> bool:
+        # learned_profile's stack buffers: Phi_proj rows up to 256 wide, Phi_dec up to 64
+        widths = [m.in_features for m in self.proj if isinstance(m, nn.Linear)]
+        widths += [m.out_features for m in self.proj if isinstance(m, nn.Linear)]
+        return max(widths) <= 256 and self.dec_width <= 64 and self.latent2d_dim <= 64
+
     def profile(self, prims, view: ViewContext) -> Profile:
         """Samples d_i = Phi_dec(r_i^2, z2d) at r_i = i / (k - 1) (paper Eq. 7): table [M, k]."""
         self._check_weights()
         if (view.fused and not torch.is_grad_enabled() and _use_bf16(self.proj_precision, False)
-                and bf16_mlp_available()):
+                and self._fits_native_profile() and bf16_mlp_available()):
             # encode, Phi_proj in bf16 and Phi_dec in one native pass (the values of the path below)
             table = learned_profile_fused(
                 prims.get("z3d") if "z" in self.inputs else None, view.means_cam, view.scales,

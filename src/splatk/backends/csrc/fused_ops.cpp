@@ -722,11 +722,11 @@ inline void decode_row(const S* z, const DecoderWeights<S>& d, const S* r2, int6
 }
 
 template <typename S>
-DecoderWeights<S> decoder_weights(const at::Tensor& z2d, const at::Tensor& w1, const at::Tensor& b1,
+DecoderWeights<S> decoder_weights(int64_t L, const at::Tensor& w1, const at::Tensor& b1,
                                   const at::Tensor& w2, const at::Tensor& b2, const at::Tensor& w3,
                                   const at::Tensor& b3) {
   return {w1.data_ptr<S>(), b1.data_ptr<S>(), w2.data_ptr<S>(), b2.data_ptr<S>(), w3.data_ptr<S>(),
-          b3.data_ptr<S>()[0], z2d.size(1), w1.size(0), w2.size(0)};
+          b3.data_ptr<S>()[0], L, w1.size(0), w2.size(0)};
 }
 
 void check_decoder(const char* op, int64_t L, const at::Tensor& w1, const at::Tensor& b1,
@@ -805,9 +805,9 @@ at::Tensor learned_decode(const at::Tensor& z2d, const at::Tensor& w1, const at:
   check_decoder("learned_decode", z2d.size(1), w1, b1, w2, b2, w3, b3, radii2);
   at::Tensor out = at::empty({z2d.size(0), radii2.size(0)}, z2d.options());
   if (z2d.scalar_type() == at::kDouble)
-    learned_decode_t<double>(z2d, decoder_weights<double>(z2d, w1, b1, w2, b2, w3, b3), radii2, slope, out, threads);
+    learned_decode_t<double>(z2d, decoder_weights<double>(z2d.size(1), w1, b1, w2, b2, w3, b3), radii2, slope, out, threads);
   else
-    learned_decode_t<float>(z2d, decoder_weights<float>(z2d, w1, b1, w2, b2, w3, b3), radii2, slope, out, threads);
+    learned_decode_t<float>(z2d, decoder_weights<float>(z2d.size(1), w1, b1, w2, b2, w3, b3), radii2, slope, out, threads);
   return out;
 }
 
@@ -934,11 +934,10 @@ at::Tensor learned_profile(const std::optional<at::Tensor>& z, const at::Tensor&
     layers.emplace_back(w.data_ptr<float>(), b.data_ptr<float>(), int(din), int(w.size(0)));
     din = w.size(0);
   }
-  at::Tensor z2d_shape = at::empty({0, din}, means_cam.options());
   check_float_inputs("learned_profile", {{&means_cam, "means_cam"}, {&w1, "w1"}, {&b1, "b1"}, {&w2, "w2"},
                                          {&b2, "b2"}, {&w3, "w3"}, {&b3, "b3"}, {&radii2, "radii2"}});
   check_decoder("learned_profile", din, w1, b1, w2, b2, w3, b3, radii2);
-  const DecoderWeights<float> dec = decoder_weights<float>(z2d_shape, w1, b1, w2, b2, w3, b3);
+  const DecoderWeights<float> dec = decoder_weights<float>(din, w1, b1, w2, b2, w3, b3);
   const int64_t P = radii2.size(0);
   at::Tensor out = at::empty({M, P}, means_cam.options());
   const float* pz = zz.defined() ? zz.data_ptr<float>() : nullptr;
