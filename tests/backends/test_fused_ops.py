@@ -266,4 +266,4 @@ def test_learned_profile_wider_than_native_buffers_falls_back_to_torch():
     with torch.no_grad():
         a = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, fused=True)).params
         b = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam)).params
-    assert torch.equal(a, b)
+    assert (a - b).abs().max() < 1e-6  # torch Phi_proj either way (the decode may be native)
