@@ -5,19 +5,19 @@
 #
 #   benchmarks/bench_real.sh [OUT] [DATA_DIR]
 #
-# OUT defaults to benchmarks/results/real4, DATA_DIR to ../shared/data. Resumable: finished runs
-# are skipped. Settings are chosen so the whole thing fits in about an hour on 2 cores:
+# OUT defaults to benchmarks/results/real5, DATA_DIR to ../shared/data. Resumable: finished runs
+# are skipped. Settings are chosen so the whole thing fits in about an hour and a half on 2 cores:
 #   grid:      presets/bench_kernels.yaml (gaussian, beta, student_t, learned k=2/4/8 at 1 MB and
-#              4 MB), 2000 iterations (schedules and 30k-tuned LRs scaled), 1/4 resolution
+#              4 MB), 4000 iterations (schedules and 30k-tuned LRs scaled), 1/4 resolution
 #              (lego 1/2: it is 400x400)
 #   stability: presets/bench_stability.yaml, 1000 iterations, 1/8 resolution (lego 1/4), 5000
 #              primitives
 # Override with ITERS, DOWNSCALE, STAB_ITERS, STAB_DOWNSCALE, STAB_BUDGET, SCENES, STAB_SCENES.
 set -uo pipefail
 
-out=${1:-benchmarks/results/real4}
+out=${1:-benchmarks/results/real5}
 data=${2:-../shared/data}
-iters=${ITERS:-2000}
+iters=${ITERS:-4000}
 downscale=${DOWNSCALE:-4}
 stab_iters=${STAB_ITERS:-1000}
 stab_downscale=${STAB_DOWNSCALE:-8}

@@ -9,7 +9,7 @@ reuse its primitives: same centres, rotations, opacities and colours, scales x3 
 kernel's support ends at 1 sigma, the Gaussian's at 3, so the screen footprints match), and
 zero latents. Times are the mean over ``--reps`` passes over the first ``--views`` test views
 (the median over passes) of `model.render` without gradients on the ``cpu`` backend (projection, colour, Phi_proj /
-Phi_dec for the learned kernel, rasterisation). Writes benchmarks/results/kernel_render.json
+Phi_dec for the learned kernel, rasterisation), passes interleaved across the kernels. Writes benchmarks/results/kernel_render.json
 and prints a table. Issue #4's target: learned k=2 <= 1.3x the Gaussian.
 """
 from __future__ import annotations
@@ -51,19 +51,7 @@ def main() -> None:
     cams = scene.test[: args.views]
     bg = torch.tensor(scene.background)
 
-    def time_renders(m) -> float:
-        with torch.no_grad():
-            for c in cams[:2]:
-                m.render(c, bg, backend="cpu")
-            passes = []
-            for _ in range(args.reps):
-                t = time.perf_counter()
-                for c in cams:
-                    m.render(c, bg, backend="cpu")
-                passes.append((time.perf_counter() - t) / len(cams) * 1e3)
-        return statistics.median(passes)  # this VM's timings are noisy: median of the passes
-
-    rows = {"gaussian": {"ms": time_renders(model)}}
+    models = {"gaussian": model}
     prims = {k: v.detach().clone() for k, v in model.prims.items()}
     prims["log_scales"] = prims["log_scales"] + math.log(3.0)
     for precision in ("auto", "fp32"):
@@ -71,7 +59,22 @@ def main() -> None:
             kernel = make_kernel("learned", k=k, proj_precision=precision)
             p = dict(prims)
             p.update(kernel.init_primitive_params(model.num_primitives, torch.device("cpu")))
-            rows[f"learned k={k} ({precision})"] = {"ms": time_renders(SplatModel(kernel, model.color, p))}
+            models[f"learned k={k} ({precision})"] = SplatModel(kernel, model.color, p)
+
+    # passes interleaved across the models, so that drift in this VM's speed (10% between
+    # minutes is common) hits every model alike; a model's time is the median of its passes
+    passes: dict[str, list[float]] = {name: [] for name in models}
+    with torch.no_grad():
+        for m in models.values():
+            for c in cams[:2]:
+                m.render(c, bg, backend="cpu")
+        for _ in range(args.reps):
+            for name, m in models.items():
+                t = time.perf_counter()
+                for c in cams:
+                    m.render(c, bg, backend="cpu")
+                passes[name].append((time.perf_counter() - t) / len(cams) * 1e3)
+    rows = {name: {"ms": statistics.median(v)} for name, v in passes.items()}
     base = rows["gaussian"]["ms"]
     for r in rows.values():
         r["ms"] = round(r["ms"], 1)

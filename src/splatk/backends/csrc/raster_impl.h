@@ -200,7 +200,14 @@ double alpha_cut_r2(int kind, double o, const S* par, int k) {
     for (int j = 0; j < k; ++j)
       if (o * double(par[j]) >= thr) last = j;
     if (last < 0) return -1.0;
-    const double r = last >= k - 1 ? 1.0 : double(last + 1) / double(k - 1);
+    double r = 1.0;
+    if (last < k - 1) {
+      // between samples the profile is linear in r (table_lookup), so o * profile crosses thr
+      // once in [last, last + 1], where it falls from >= thr to < thr
+      const double t = thr / o, d0 = double(par[last]), d1 = double(par[last + 1]);
+      const double lam = d0 > d1 ? std::clamp((d0 - t) / (d0 - d1), 0.0, 1.0) : 1.0;
+      r = (double(last) + lam) / double(k - 1);
+    }
     r2 = r * r;
   } else if (kind == kGaussian) {
     if (!(o >= thr)) return -1.0;  // profile <= 1
