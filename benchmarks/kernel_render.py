@@ -7,10 +7,11 @@ RUN is a finished `splatk fit` run with the Gaussian kernel (e.g. `splatk fit
 ../shared/data/lego --out runs/lego --budget 50000 --time-budget 10m`). The learned models
 reuse its primitives: same centres, rotations, opacities and colours, scales x3 (the learned
 kernel's support ends at 1 sigma, the Gaussian's at 3, so the screen footprints match), and
-zero latents. Times are the mean over ``--reps`` passes over the first ``--views`` test views
-(the median over passes) of `model.render` without gradients on the ``cpu`` backend (projection, colour, Phi_proj /
-Phi_dec for the learned kernel, rasterisation), passes interleaved across the kernels. Writes benchmarks/results/kernel_render.json
-and prints a table. Issue #4's target: learned k=2 <= 1.3x the Gaussian.
+zero latents. A kernel's time is the median over ``--reps`` passes of the mean time per view
+over the first ``--views`` test views, of `model.render` without gradients on the ``cpu``
+backend (projection, colour, Phi_proj / Phi_dec for the learned kernel, rasterisation); the
+passes are interleaved across the kernels. Writes benchmarks/results/kernel_render.json and
+prints a table. Issue #4's target: learned k=2 <= 1.3x the Gaussian.
 """
 from __future__ import annotations
 

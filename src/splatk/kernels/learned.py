@@ -361,11 +361,13 @@ class LearnedKernel(Kernel):
         return phi_dec(first.weight, first.bias, mid.weight, mid.bias, last.weight, last.bias,
                        z2d, r2, logits)
 
+    def _proj_layers(self) -> list[nn.Linear]:
+        return [m for m in self.proj if isinstance(m, nn.Linear)]
+
     def _fits_native_profile(self) -> bool:
-        # learned_profile's stack buffers: Phi_proj rows up to 256 wide, Phi_dec up to 64
-        widths = [m.in_features for m in self.proj if isinstance(m, nn.Linear)]
-        widths += [m.out_features for m in self.proj if isinstance(m, nn.Linear)]
-        return max(widths) <= 256 and self.dec_width <= 64 and self.latent2d_dim <= 64
+        # learned_profile's stack buffers: Phi_proj layers up to 256 wide, Phi_dec up to 64
+        widths = [w for m in self._proj_layers() for w in (m.in_features, m.out_features)]
+        return max(widths) <= 256 and self.dec_width <= 64
 
     def profile(self, prims, view: ViewContext) -> Profile:
         """Samples d_i = Phi_dec(r_i^2, z2d) at r_i = i / (k - 1) (paper Eq. 7): table [M, k]."""
@@ -377,7 +379,7 @@ class LearnedKernel(Kernel):
                 prims.get("z3d") if "z" in self.inputs else None, view.means_cam, view.scales,
                 view.rotmats_cam, "mu" in self.inputs, "s" in self.inputs, "R" in self.inputs,
                 LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE,
-                [m for m in self.proj if isinstance(m, nn.Linear)], self.dec[0::2], self.radii2, LEAKY_SLOPE)
+                self._proj_layers(), self.dec[0::2], self.radii2, LEAKY_SLOPE)
             return Profile("table", table)
         z2d = self.project(prims.get("z3d"), view)
         if view.fused and not torch.is_grad_enabled():  # one native pass (same values)

@@ -66,6 +66,8 @@ struct PackedLinear {
 #if SPLATK_HAS_BF16_MLP
 constexpr int kMlpRows = 8;  // rows (primitives) sharing each load of a weight vector
 constexpr int kMlpGroup = 16 / kMlpRows;  // output blocks per pass: kMlpRows x kMlpGroup accumulators
+// linear_rows dispatches a pass of 1 or kMlpGroup blocks (a layer's last pass may be short)
+static_assert(kMlpGroup == 2, "linear_rows handles passes of 1 or 2 output blocks");
 
 // Where a layer's input rows are: bf16 pairs, row r's pair kp at in[r * row + kp * pair].
 struct PairRows {
