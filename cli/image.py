@@ -9,7 +9,7 @@ from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                            TimeRemainingColumn)
 
-from splatk.models.image2d import KERNELS
+from splatk.models.image2d import BACKENDS, KERNELS
 from splatk.stages.image_fit import ImageFitConfig, run_image_fit
 
 _D = ImageFitConfig()
@@ -35,11 +35,13 @@ _D = ImageFitConfig()
               help="Learned kernel: floats of each primitive's latent (fewer = more primitives per byte; "
                    "0 = one shape shared by all splats).")
 @click.option("--exact", is_flag=True, help="Learned kernel: run the decoder per pixel (slow reference).")
+@click.option("--backend", type=click.Choice(BACKENDS), default=_D.backend, show_default=True,
+              help="Renderer: native cpu (OpenMP), torch (reference, any device), or auto (cpu when it builds).")
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing result in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, exact,
-            no_lpips, overwrite, quiet):
+            backend, no_lpips, overwrite, quiet):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
     The image is the plain sum of the splats (GaussianImage style); see
@@ -57,7 +59,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
         raise click.BadParameter(str(e), param_hint="--budget-bytes") from None
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
-                         lpips=not no_lpips)
+                         backend=backend, lpips=not no_lpips)
     console = Console(stderr=True)
     progress = None if quiet else Progress(
         TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),

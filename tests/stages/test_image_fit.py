@@ -169,3 +169,28 @@ def test_cli_reads_byte_sizes_with_units(tmp_path):
     assert json.loads((tmp_path / "a" / "metrics.json").read_text())["num_primitives"] == 1024 // 32
     bad = CliRunner().invoke(cli, base + ["--budget-bytes", "lots", "--out", str(tmp_path / "b")])
     assert bad.exit_code == 2 and "byte size" in bad.output
+
+
+def test_cli_backends_agree_and_exact_refuses_cpu(tmp_path):
+    """--backend torch and cpu fit the same splats (the native op is the torch path's twin), and the
+    exact learned mode, which only the torch path has, is refused on cpu with a clear message."""
+    from PIL import Image
+    from splatk.backends.cpu_native import available
+    from splatk_cli.main import cli
+
+    if not available():
+        pytest.skip("native cpu backend unavailable")
+    photo = tmp_path / "p.png"
+    Image.fromarray((_synthetic(32, 48).numpy() * 255).astype(np.uint8)).save(photo)
+    base = ["image", str(photo), "--kernel", "learned", "--budget-bytes", "2000", "--iters", "20",
+            "--threads", "1", "-q", "--no-lpips"]
+    psnrs = {}
+    for backend in ("torch", "cpu"):
+        res = CliRunner().invoke(cli, base + ["--backend", backend, "--out", str(tmp_path / backend)])
+        assert res.exit_code == 0, res.output
+        m = json.loads((tmp_path / backend / "metrics.json").read_text())
+        assert m["config"]["backend"] == backend
+        psnrs[backend] = m["psnr"]
+    assert abs(psnrs["torch"] - psnrs["cpu"]) < 0.05
+    bad = CliRunner().invoke(cli, base + ["--backend", "cpu", "--exact", "--out", str(tmp_path / "x")])
+    assert bad.exit_code != 0 and "exact" in bad.output and "Traceback" not in bad.output

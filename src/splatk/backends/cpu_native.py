@@ -33,7 +33,7 @@ from . import PROFILE_KINDS, Profile, RasterOutput, register_backend
 
 _CSRC = Path(__file__).with_name("csrc")
 _SOURCES = ("rasterize_cpu.cpp", "raster_kernels.cpp", "raster_kernels_f64.cpp", "fused_ops.cpp",
-            "planar_raster.cpp")
+            "planar_raster.cpp", "image_splat.cpp")
 _HEADERS = ("raster_kernels.h", "raster_impl.h", "simd.h", "bf16_mlp.h")
 _KIND_CODES = {"gaussian": 0, "beta": 1, "student_t": 2, "table": 3}
 assert set(_KIND_CODES) == set(PROFILE_KINDS)

@@ -36,9 +36,12 @@ Learned-kernel choices (the paper leaves them open for images):
   per-pixel cost is one Gaussian plus four gathers. ``exact`` mode calls the decoder per pixel
   (the reference the table is tested against).
 
-Rendering is tiled pure torch: every (splat, pixel) pair inside the splat's 3-sigma bbox is
-listed (integers, no grad), the kernel is evaluated on the pairs and ``index_add`` sums the
-colours; splats are processed in chunks so the number of pairs in flight stays bounded.
+Rendering (``backend``): ``torch`` lists every (splat, pixel) pair inside the splat's 3-sigma
+bbox (integers, no grad), evaluates the kernel on the pairs and sums the colours with
+``index_add``, in chunks so the pairs in flight stay bounded; it is the reference, runs on any
+device and also serves the ``exact`` learned mode. ``cpu`` hands the same boxes and transformed
+parameters to the native op (:mod:`splatk.backends.image_cpu`, OpenMP, same image and gradients,
+several times faster); ``auto`` picks ``cpu`` when it builds and the splats are on the CPU.
 """
 from __future__ import annotations
 
@@ -51,6 +54,7 @@ from torch import Tensor, nn
 from ..backends.planar_torch import bilinear
 
 KERNELS = ("gaussian", "gabor", "learned")
+BACKENDS = ("auto", "torch", "cpu")
 #: support in sigmas (GaussianImage uses 3)
 SUPPORT_SIGMAS = 3.0
 LEAKY_SLOPE = 0.01
@@ -124,8 +128,11 @@ class Splats2D(nn.Module):
 
     def __init__(self, kernel: str, n: int, height: int, width: int, grid: int = 8,
                  exact: bool = False, generator: torch.Generator | None = None,
-                 latent_dim: int = LATENT_DIM):
+                 latent_dim: int = LATENT_DIM, backend: str = "auto"):
         super().__init__()
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown image backend {backend!r}; choose from {', '.join(BACKENDS)}")
+        self.backend = backend
         if kernel not in KERNELS:
             raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
         if n < 1:
@@ -156,7 +163,7 @@ class Splats2D(nn.Module):
     def means_px(self) -> Tensor:
         """[N, 2] means in pixels (x, y), pixel centres at integer + 0.5."""
         t = (torch.tanh(self.xy_raw) + 1.0) * 0.5
-        return t * torch.tensor([self.width, self.height], dtype=t.dtype)
+        return t * torch.tensor([self.width, self.height], dtype=t.dtype, device=t.device)
 
     def chol_factors(self) -> tuple[Tensor, Tensor, Tensor]:
         """l11, l21, l22 with the diagonal kept >= 0.3 px (no degenerate splats)."""
@@ -165,7 +172,7 @@ class Splats2D(nn.Module):
 
     def kernel_table(self) -> Tensor:
         """[N, G, G] Phi_dec_planar at the grid nodes (learned kernel)."""
-        g = torch.linspace(-1.0, 1.0, self.grid)
+        g = torch.linspace(-1.0, 1.0, self.grid, dtype=self.latents.dtype, device=self.latents.device)
         vv, uu = torch.meshgrid(g, g, indexing="ij")
         uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)  # [1, G*G, 2]
         out = self.decoder(uv, self.latents[:, None, :])  # [N, G*G]
@@ -201,12 +208,19 @@ class Splats2D(nn.Module):
 
     # ---- rendering ------------------------------------------------------------------------
     @torch.no_grad()
-    def _pairs(self, means: Tensor, l11: Tensor, l21: Tensor, l22: Tensor):
-        """(splat index, pixel x, pixel y) for every pixel centre in each splat's 3-sigma bbox."""
+    def _boxes(self, means: Tensor, l11: Tensor, l21: Tensor, l22: Tensor):
+        """Each splat's pixel box around its 3-sigma ellipse: x0, y0 (int32) and radii rx, ry;
+        the box is x0 .. x0 + 2 rx, y0 .. y0 + 2 ry (may reach outside the image)."""
         rx = (SUPPORT_SIGMAS * l11).ceil().clamp(max=MAX_RADIUS).int()
         ry = (SUPPORT_SIGMAS * torch.sqrt(l21 * l21 + l22 * l22)).ceil().clamp(max=MAX_RADIUS).int()
         x0 = means[:, 0].floor().int() - rx
         y0 = means[:, 1].floor().int() - ry
+        return x0, y0, rx, ry
+
+    @torch.no_grad()
+    def _pairs(self, means: Tensor, l11: Tensor, l21: Tensor, l22: Tensor):
+        """(splat index, pixel x, pixel y) for every pixel centre in each splat's 3-sigma bbox."""
+        x0, y0, rx, ry = self._boxes(means, l11, l21, l22)
         wx = 2 * rx + 1
         counts = (wx * (2 * ry + 1)).long()
         idx = torch.repeat_interleave(torch.arange(self.n, dtype=torch.int32), counts)
@@ -218,15 +232,43 @@ class Splats2D(nn.Module):
         keep = (px >= 0) & (px < self.width) & (py >= 0) & (py < self.height)
         return idx[keep].long(), px[keep], py[keep]
 
+    def uses_native(self) -> bool:
+        """Whether :meth:`render` runs the native op (see the module docstring)."""
+        if self.backend == "torch" or (self.kernel == "learned" and self.exact):
+            if self.backend == "cpu":
+                raise ValueError("the exact learned mode has no cpu backend; use backend torch")
+            return False
+        if self.xy_raw.device.type != "cpu":
+            if self.backend == "cpu":
+                raise ValueError("image backend 'cpu' needs CPU tensors; use backend torch")
+            return False
+        from ..backends.cpu_native import available
+
+        if self.backend == "cpu" and not available():
+            raise RuntimeError("the native cpu backend could not be built; use backend torch")
+        return available()
+
     def render(self) -> Tensor:
         """[H, W, 3] image (unclamped sum of the splats)."""
         means = self.means_px()
         l11, l21, l22 = self.chol_factors()
         table = self.kernel_table() if self.kernel == "learned" and not self.exact else None
+        if self.uses_native():
+            from ..backends.image_cpu import render_image_splats_cpu
+
+            x0, y0, rx, ry = self._boxes(means.detach(), l11.detach(), l21.detach(), l22.detach())
+            bbox = torch.stack([x0, y0, x0 + 2 * rx + 1, y0 + 2 * ry + 1], 1).to(torch.int32).contiguous()
+            chol = torch.stack([l11, l21, l22], 1)
+            if self.kernel == "learned":
+                kind, aux, extras = "table", self.grid, table.reshape(self.n, -1)
+            else:
+                kind, aux, extras = self.kernel, GABOR_WAVES if self.kernel == "gabor" else 0, self._extras()
+            return render_image_splats_cpu(means, chol, self.colors, extras, bbox, kind, aux,
+                                           self.width, self.height)
         idx, px, py = self._pairs(means.detach(), l11.detach(), l21.detach(), l22.detach())
         # one packed gather per chunk: mean 2, L 3, colour 3, kernel extras
         packed = torch.cat([means, l11[:, None], l21[:, None], l22[:, None], self.colors, self._extras()], 1)
-        out = torch.zeros(self.height * self.width, 3, dtype=means.dtype)
+        out = torch.zeros(self.height * self.width, 3, dtype=means.dtype, device=means.device)
         for s in range(0, idx.numel(), CHUNK_PAIRS):
             i, x, y = idx[s:s + CHUNK_PAIRS], px[s:s + CHUNK_PAIRS], py[s:s + CHUNK_PAIRS]
             g = packed.index_select(0, i)

@@ -25,7 +25,7 @@ import torch
 
 from ..errors import InputError
 from ..metrics import compute_metrics, lpips_available
-from ..models.image2d import KERNELS, LATENT_DIM, Splats2D, decoder_floats, num_primitives
+from ..models.image2d import BACKENDS, KERNELS, LATENT_DIM, Splats2D, decoder_floats, num_primitives
 
 
 @dataclass
@@ -49,6 +49,8 @@ class ImageFitConfig:
     #: learned kernel: floats of each primitive's latent (fewer floats = more primitives per byte;
     #: 0 = one learned shape shared by all splats)
     latent_dim: int = LATENT_DIM
+    #: renderer: auto | cpu (native OpenMP) | torch (reference; also the exact learned mode's)
+    backend: str = "auto"
     # Learning rates: measured on kodim05 (downscale 4, 8 KiB, 300 iterations), 2x these
     # (5e-3, 2e-2, 1e-2, 1e-2, 2e-3) gave gaussian 20.08 dB -> 20.79 dB, learned 18.68 -> 18.88 dB.
     #: Adam learning rate of the means (tanh space: 1e-2 is about W/200 px per step)
@@ -122,8 +124,13 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
     h, w = target.shape[:2]
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
+    if cfg.backend not in BACKENDS:
+        raise InputError(None, f"unknown backend {cfg.backend!r}", f"choose from {', '.join(BACKENDS)}")
+    if cfg.backend == "cpu" and cfg.exact:
+        raise InputError(None, "the exact learned mode runs on the torch backend only",
+                         "drop --exact or use --backend torch")
     model = Splats2D(cfg.kernel, n, h, w, grid=cfg.grid, exact=cfg.exact, generator=gen,
-                     latent_dim=cfg.latent_dim)
+                     latent_dim=cfg.latent_dim, backend=cfg.backend)
     s0 = float(model.chol[0, 0].detach())
     opt = _optimizer(model, cfg, s0)
     t0 = time.perf_counter()

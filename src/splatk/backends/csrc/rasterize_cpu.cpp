@@ -162,6 +162,7 @@ std::vector<at::Tensor> rasterize_backward(const std::vector<at::Tensor>& state,
 
 void register_fused_ops(pybind11::module_& m);   // fused_ops.cpp
 void register_planar_ops(pybind11::module_& m);  // planar_raster.cpp
+void register_image_ops(pybind11::module_& m);   // image_splat.cpp
 
 }  // namespace splatk
 
@@ -186,4 +187,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("simd_width", &splatk::simd_width, "vector width the kernels were compiled for (bits)");
   splatk::register_fused_ops(m);
   splatk::register_planar_ops(m);
+  splatk::register_image_ops(m);
 }
