@@ -79,8 +79,9 @@ def test_bytes_within_budget(kernel, latent_dim, budget):
     m = Splats2D(kernel, max(n, 1), 8, 8, latent_dim=latent_dim)
     per_prim = sum(p.numel() for name, p in m.named_parameters() if not name.startswith("decoder.")) // m.n
     assert per_prim == floats_per_primitive(kernel, latent_dim)  # every per-primitive parameter is counted
-    assert n * 4 * per_prim <= budget < (n + 1) * 4 * per_prim
-    assert m.describe_bytes()["bytes"] == m.n * 4 * per_prim
+    net = 4 * decoder_floats(latent_dim) if kernel == "learned" else 0  # paid from the same budget
+    assert n * 4 * per_prim + net <= budget < (n + 1) * 4 * per_prim + net
+    assert m.describe_bytes()["bytes"] == m.n * 4 * per_prim + net
     if kernel == "learned":
         assert per_prim == 8 + latent_dim
         assert decoder_floats(latent_dim) == sum(p.numel() for p in PlanarDecoder(latent_dim).parameters())
@@ -130,7 +131,8 @@ def test_cli_writes_metrics(tmp_path):
     for key in ("psnr", "ssim", "lpips", "bytes", "num_primitives", "kernel", "iterations", "seconds"):
         assert key in m
     assert m["kernel"] == "learned" and m["iterations"] == 5
-    assert m["num_primitives"] == 2000 // (4 * (8 + LATENT_DIM)) and m["bytes"] <= 2000
+    assert m["num_primitives"] == (2000 - 4 * decoder_floats()) // (4 * (8 + LATENT_DIM)) and m["bytes"] <= 2000
+    assert m["bytes"] == m["primitive_bytes"] + m["network_bytes"]
     assert m["network_bytes"] == 4 * decoder_floats()
     assert m["latent_dim"] == LATENT_DIM and m["config"]["latent_dim"] == LATENT_DIM
     assert Image.open(out / "render.png").size == (24, 16)
@@ -152,7 +154,7 @@ def test_cli_latent_dim_recorded(tmp_path):
     assert res.exit_code == 0, res.output
     m = json.loads((out / "metrics.json").read_text())
     assert m["latent_dim"] == 3 and m["config"]["latent_dim"] == 3
-    assert m["bytes_per_primitive"] == 4 * (8 + 3) and m["num_primitives"] == 2000 // 44
+    assert m["bytes_per_primitive"] == 4 * (8 + 3) and m["num_primitives"] == (2000 - 4 * decoder_floats(3)) // 44
     assert m["network_bytes"] == 4 * decoder_floats(3) and m["network_floats"] == decoder_floats(3)
 
 

@@ -81,14 +81,21 @@ def floats_per_primitive(kernel: str, latent_dim: int = LATENT_DIM) -> int:
 
 
 def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
-    """Floats of the shared Phi_dec_planar (amortised over all primitives, stated apart)."""
+    """Floats of the shared Phi_dec_planar (paid once, out of the same byte budget)."""
     i, w = 2 + latent_dim, DEC_WIDTH
     return (i * w + w) + (w * w + w) + (w + 1)
 
 
+def network_bytes(kernel: str, latent_dim: int = LATENT_DIM) -> int:
+    """float32 bytes of the kernel's shared network (the learned decoder; 0 for the others)."""
+    return 4 * decoder_floats(latent_dim) if kernel == "learned" else 0
+
+
 def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM) -> int:
-    """Primitives that fit in ``budget_bytes`` at float32 (network bytes not included)."""
-    return int(budget_bytes) // (4 * floats_per_primitive(kernel, latent_dim))
+    """Primitives that fit in ``budget_bytes`` at float32 once the shared network is paid for
+    (``splatk bench``'s rule too: budget = (budget_bytes - network_bytes) // bytes_per_primitive)."""
+    spare = int(budget_bytes) - network_bytes(kernel, latent_dim)
+    return max(0, spare) // (4 * floats_per_primitive(kernel, latent_dim))
 
 
 class PlanarDecoder(nn.Module):
@@ -282,7 +289,9 @@ class Splats2D(nn.Module):
         return out.reshape(self.height, self.width, 3)
 
     def describe_bytes(self) -> dict:
-        """Honest storage at float32: per-primitive bytes and (learned) the shared decoder."""
+        """Honest storage at float32: ``bytes`` is everything needed to redraw the image (the
+        primitives and, for the learned kernel, the shared decoder)."""
         per = 4 * floats_per_primitive(self.kernel, self.latent_dim)
-        return {"bytes": per * self.n, "bytes_per_primitive": per,
-                "network_bytes": 4 * decoder_floats(self.latent_dim) if self.kernel == "learned" else 0}
+        net = network_bytes(self.kernel, self.latent_dim)
+        return {"bytes": per * self.n + net, "primitive_bytes": per * self.n, "bytes_per_primitive": per,
+                "network_bytes": net}
