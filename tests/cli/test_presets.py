@@ -36,3 +36,35 @@ def test_parse_duration_rejects_garbage():
 
     with pytest.raises(click.BadParameter):
         parse_duration("ten minutes")
+
+
+def test_fit_scales_schedules_to_short_runs(tmp_path):
+    """`splatk fit --iters N` (N < 30k) shrinks the 30k step schedules in proportion and says so
+    in config.yaml; --no-scale-schedules keeps them; 30k runs and timed runs are untouched."""
+    import yaml
+    from click.testing import CliRunner
+    from splatk.data.synthetic import make_demo_scene
+    from splatk.stages.fit import FitConfig, scale_schedules_to_run
+    from splatk_cli.main import cli
+
+    scene = make_demo_scene(tmp_path / "scene", num_views=6, size=24)
+    base = ["fit", str(scene), "--iters", "300", "--budget", "200", "--threads", "1", "-q"]
+    res = CliRunner().invoke(cli, base + ["--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    doc = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
+    train = doc["settings"]["train"]
+    assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (5, 5, 10)
+    assert "scaled to the run length" in doc["sources"]["refine_every"]
+    res = CliRunner().invoke(cli, base + ["--no-scale-schedules", "--out", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    train = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["settings"]["train"]
+    assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (100, 500, 1000)
+
+    full = FitConfig()
+    assert scale_schedules_to_run(full) == {} and full.train.refine_every == 100
+    timed = FitConfig(kernel="learned")
+    timed.train.iters, timed.train.time_budget = 1000, 60.0
+    assert scale_schedules_to_run(timed) == {} and "freeze_iters" not in timed.kernel_options
+    learned = FitConfig(kernel="learned")
+    learned.train.iters = 3000
+    assert scale_schedules_to_run(learned)["freeze_iters"] == 200

@@ -44,14 +44,10 @@ from ..models.volumetric import SplatModel
 from ..train.trainer import TrainConfig
 from .autobudget import AutoBudgetConfig
 from .evaluate import run_eval
-from .fit import PRIMITIVES, FitConfig, _color_options, run_fit
+from .fit import FULL_ITERS, PRIMITIVES, FitConfig, _color_options, run_fit, scale_schedules_to_run
 
 #: keys a method may have besides FitConfig / TrainConfig fields
 METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options")
-#: the paper's schedule lengths at 30k iterations; short bench runs scale them (scale_schedules)
-FULL_ITERS = 30_000
-SCALED_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
-LEARNED_FREEZE_ITERS = 2000
 #: short runs raise the log-scale LR by sqrt(30k / iters), at most this much
 SCALES_LR_MULT_MAX = 10.0
 #: ... and the learned kernel's latent and network LRs by 30k / iters, at most this much
@@ -242,19 +238,12 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
         cfg.train.budget = int(float(budget))
     if scale_schedules and cfg.train.time_budget is None and cfg.train.iters < FULL_ITERS:
         s = cfg.train.iters / FULL_ITERS
-        scaled = {}
-        for key, (full, lo) in SCALED_SCHEDULES.items():
-            if key not in spec:
-                setattr(cfg.train, key, max(lo, round(full * s)))
-                scaled[key] = getattr(cfg.train, key)
+        scaled = scale_schedules_to_run(cfg, keep=set(spec))  # as `splatk fit` does
         if scale_lrs and "scales_lr_mult" not in spec:
             # the log-scale LR is tuned for 30k iterations; short runs starve it (fox, random
             # init, 2000 iterations: learned k=4 13.9 -> 21.7 dB at x3, gaussian 20.9 -> 21.6)
             cfg.train.scales_lr_mult = round(min(SCALES_LR_MULT_MAX, math.sqrt(1 / s)), 3)
             scaled["scales_lr_mult"] = cfg.train.scales_lr_mult
-        if cfg.kernel == "learned" and "freeze_iters" not in kernel_options:
-            cfg.kernel_options["freeze_iters"] = round(LEARNED_FREEZE_ITERS * s)
-            scaled["freeze_iters"] = cfg.kernel_options["freeze_iters"]
         if cfg.kernel == "learned" and scale_lrs:
             # the latents and networks get 30k / iters fewer steps, and their LRs decay over
             # the shorter run: raise them by that factor, at most x10 (cup / fox at 1/8, 2000

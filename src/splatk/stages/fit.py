@@ -34,6 +34,40 @@ from ..train.trainer import StepInfo, TrainConfig, Trainer
 from .autobudget import AutoBudget, AutoBudgetConfig, render_psnr, split_holdout
 
 
+#: the paper's run length; the step-count schedules below are tuned for it
+FULL_ITERS = 30_000
+#: step-count schedules at 30k iterations: (value, smallest value when scaled to a shorter run)
+RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
+#: the learned kernel freezes its networks for this many of the 30k iterations (paper Sec. 4.5)
+LEARNED_FREEZE_ITERS = 2000
+
+
+def scale_schedules_to_run(cfg: "FitConfig", keep: frozenset | set = frozenset()) -> dict:
+    """Shrink the step-count schedules of a run shorter than 30k iterations in proportion
+    (gsplat's ``steps_scaler`` idea); returns {setting: new value} (empty when nothing changed).
+
+    Unscaled, a 2000-iteration run would refine only every 100 steps, so MCMC's 5% growth per
+    refine could not reach the budget (a quarter-budget random init ends near 43% of it), raise
+    the SH degree twice, and leave a learned kernel's networks frozen for the whole run. Runs
+    with a time budget are left alone (their schedules follow progress). Settings named in
+    ``keep`` (set explicitly by the user) and the learned kernel's explicit ``freeze_iters``
+    stay as given. Learning rates are not touched here (``splatk bench`` raises some on short
+    runs; see stages/bench.py).
+    """
+    t = cfg.train
+    if t.time_budget is not None or t.iters >= FULL_ITERS:
+        return {}
+    s = t.iters / FULL_ITERS
+    scaled = {}
+    for key, (full, lo) in RUN_LENGTH_SCHEDULES.items():
+        if key not in keep:
+            setattr(t, key, max(lo, round(full * s)))
+            scaled[key] = getattr(t, key)
+    if cfg.kernel == "learned" and "freeze_iters" not in cfg.kernel_options:
+        cfg.kernel_options["freeze_iters"] = scaled["freeze_iters"] = round(LEARNED_FREEZE_ITERS * s)
+    return scaled
+
+
 @dataclass
 class FitConfig:
     """Everything `splatk fit` can be told. Presets (YAML) and flags fill these fields."""
