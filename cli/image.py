@@ -86,6 +86,6 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
     m = json.loads(path.read_text())
     lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
     console.print(f"{kernel}: {m['num_primitives']} primitives, {m['bytes']} bytes"
-                  + (f" (+{m['network_bytes']} shared network bytes)" if m["network_bytes"] else "")
+                  + (f" (of which {m['network_bytes']} the shared decoder)" if m["network_bytes"] else "")
                   + f", PSNR {m['psnr']:.2f}, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['seconds']:.1f} s")
     click.echo(f"wrote {path}")
