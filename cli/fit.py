@@ -8,7 +8,7 @@ import click
 from rich.console import Console
 
 from splatk.stages.autobudget import AutoBudgetConfig
-from splatk.stages.fit import FitConfig, run_fit, scale_schedules_to_run
+from splatk.stages.fit import FitConfig, boost_short_run_lrs, run_fit, scale_schedules_to_run
 
 from .common import load_preset, parse_duration, resolve_options
 from .progress import training_progress
@@ -41,6 +41,9 @@ from .progress import training_progress
 @click.option("--scale-schedules/--no-scale-schedules", default=None,
               help="Runs shorter than 30k iterations shrink the 30k step schedules (refine start and "
                    "interval, SH degree steps, learned-kernel freeze) in proportion. [default: scale]")
+@click.option("--short-run-lrs/--no-short-run-lrs", default=None,
+              help="Runs shorter than 30k iterations also raise the LRs tuned for 30k (log-scales, "
+                   "learned latents and networks), as `splatk bench` does. [default: off]")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing, non-empty --out folder.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
@@ -51,8 +54,11 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         raise click.UsageError("SCENE is required (unless --resume)")
     values, sources = resolve_options(ctx, opts, load_preset(preset))
     cfg = build_fit_config(values)
-    if values.get("scale_schedules") is not False and not resume:
-        for key, value in scale_schedules_to_run(cfg).items():
+    if not resume:
+        changed = scale_schedules_to_run(cfg) if values.get("scale_schedules") is not False else {}
+        if values.get("short_run_lrs"):
+            changed.update(boost_short_run_lrs(cfg))
+        for key, value in changed.items():
             sources[key] = f"scaled to the run length ({cfg.train.iters} of 30000 iterations): {value}"
     console = Console(stderr=True)
     progress = None if quiet else training_progress(console)

@@ -60,6 +60,18 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     train = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["settings"]["train"]
     assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (100, 500, 1000)
 
+    res = CliRunner().invoke(cli, base + ["--kernel", "learned", "--short-run-lrs", "--out", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    doc = yaml.safe_load((tmp_path / "c" / "config.yaml").read_text())
+    # 300 of 30k iterations: log-scale LR x sqrt(100) = 10, latent and network LRs x 10 (capped)
+    assert doc["settings"]["train"]["scales_lr_mult"] == 10.0
+    assert doc["settings"]["kernel_options"]["net_lr_mult"] == 10.0
+    assert abs(doc["settings"]["kernel_options"]["z3d_lr"] - 1e-3) < 1e-12
+    assert doc["settings"]["kernel_options"]["freeze_iters"] == 20
+    assert "scaled to the run length" in doc["sources"]["scales_lr_mult"]
+    train_a = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())["settings"]["train"]
+    assert train_a["scales_lr_mult"] == 1.0  # off unless asked for
+
     full = FitConfig()
     assert scale_schedules_to_run(full) == {} and full.train.refine_every == 100
     timed = FitConfig(kernel="learned")

@@ -44,17 +44,11 @@ from ..models.volumetric import SplatModel
 from ..train.trainer import TrainConfig
 from .autobudget import AutoBudgetConfig
 from .evaluate import run_eval
-from .fit import FULL_ITERS, PRIMITIVES, FitConfig, _color_options, run_fit, scale_schedules_to_run
+from .fit import (FULL_ITERS, PRIMITIVES, FitConfig, _color_options, boost_short_run_lrs, run_fit,
+                  scale_schedules_to_run)
 
 #: keys a method may have besides FitConfig / TrainConfig fields
 METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options")
-#: short runs raise the log-scale LR by sqrt(30k / iters), at most this much
-SCALES_LR_MULT_MAX = 10.0
-#: ... and the learned kernel's latent and network LRs by 30k / iters, at most this much
-KERNEL_LR_MULT_MAX = 10.0
-#: the learned kernels' latent: (option name, default LR) per primitive type
-#: (kernels/learned.py z3d_lr, kernels/planar.py z_lr)
-LEARNED_LATENT_LR = {"volumetric": ("z3d_lr", 1e-4), "planar": ("z_lr", 1e-4)}
 RESULT_KEYS = ("psnr", "ssim", "lpips", "train_seconds", "render_ms", "footprint_mb", "num_primitives")
 
 _FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train"}
@@ -239,25 +233,8 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
     if scale_schedules and cfg.train.time_budget is None and cfg.train.iters < FULL_ITERS:
         s = cfg.train.iters / FULL_ITERS
         scaled = scale_schedules_to_run(cfg, keep=set(spec))  # as `splatk fit` does
-        if scale_lrs and "scales_lr_mult" not in spec:
-            # the log-scale LR is tuned for 30k iterations; short runs starve it (fox, random
-            # init, 2000 iterations: learned k=4 13.9 -> 21.7 dB at x3, gaussian 20.9 -> 21.6)
-            cfg.train.scales_lr_mult = round(min(SCALES_LR_MULT_MAX, math.sqrt(1 / s)), 3)
-            scaled["scales_lr_mult"] = cfg.train.scales_lr_mult
-        if cfg.kernel == "learned" and scale_lrs:
-            # the latents and networks get 30k / iters fewer steps, and their LRs decay over
-            # the shorter run: raise them by that factor, at most x10 (cup / fox at 1/8, 2000
-            # iterations, learned k=4: z3d and network LR x10 gave +0.97 / +0.39 dB). The
-            # planar kernel has the same schedule options, its latent LR is called z_lr.
-            boost = min(KERNEL_LR_MULT_MAX, 1 / s)
-            latent_key, latent_lr = LEARNED_LATENT_LR[cfg.primitive]
-            if latent_key not in kernel_options:
-                cfg.kernel_options[latent_key] = scaled[latent_key] = latent_lr * boost
-            if "net_lr_mult" not in kernel_options:
-                pretrained = str(kernel_options.get("weights", "default")).lower() != "none"
-                # without pretraining the paper's x10 already applies; do not stack the two
-                base = 1.0 if pretrained else 10.0
-                cfg.kernel_options["net_lr_mult"] = scaled["net_lr_mult"] = max(base, round(boost, 3))
+        if scale_lrs:  # as `splatk fit --short-run-lrs` does
+            scaled.update(boost_short_run_lrs(cfg, keep=set(spec)))
         if scaled:
             notes["scaled_schedules"] = {"factor": s, **scaled}
     return cfg, notes
