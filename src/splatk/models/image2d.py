@@ -230,9 +230,10 @@ class Splats2D(nn.Module):
         x0, y0, rx, ry = self._boxes(means, l11, l21, l22)
         wx = 2 * rx + 1
         counts = (wx * (2 * ry + 1)).long()
-        idx = torch.repeat_interleave(torch.arange(self.n, dtype=torch.int32), counts)
+        dev = means.device
+        idx = torch.repeat_interleave(torch.arange(self.n, dtype=torch.int32, device=dev), counts)
         starts = (torch.cumsum(counts, 0) - counts).int()
-        k = torch.arange(int(counts.sum()), dtype=torch.int32) - torch.repeat_interleave(starts, counts)
+        k = torch.arange(int(counts.sum()), dtype=torch.int32, device=dev) - torch.repeat_interleave(starts, counts)
         wxp = torch.repeat_interleave(wx, counts)
         px = torch.repeat_interleave(x0, counts) + k % wxp
         py = torch.repeat_interleave(y0, counts) + k // wxp
