@@ -196,3 +196,13 @@ def test_cli_backends_agree_and_exact_refuses_cpu(tmp_path):
     assert abs(psnrs["torch"] - psnrs["cpu"]) < 0.05
     bad = CliRunner().invoke(cli, base + ["--backend", "cpu", "--exact", "--out", str(tmp_path / "x")])
     assert bad.exit_code != 0 and "exact" in bad.output and "Traceback" not in bad.output
+
+
+def test_budget_below_one_primitive_says_what_it_needs():
+    """A budget that cannot pay for the decoder plus one primitive is an input error naming the
+    smallest budget that works, and that budget fits exactly one primitive."""
+    needs = 4 * decoder_floats() + 4 * floats_per_primitive("learned")
+    with pytest.raises(InputError, match=f"at least {needs}"):
+        fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs - 1, iters=0))
+    model, summary = fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs, iters=0))
+    assert summary["num_primitives"] == 1

@@ -26,7 +26,8 @@ import torch
 
 from ..errors import InputError
 from ..metrics import compute_metrics, lpips_available
-from ..models.image2d import BACKENDS, KERNELS, LATENT_DIM, Splats2D, decoder_floats, num_primitives
+from ..models.image2d import (BACKENDS, KERNELS, LATENT_DIM, Splats2D, decoder_floats, floats_per_primitive,
+                              network_bytes, num_primitives)
 
 
 @dataclass
@@ -118,8 +119,11 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
         raise InputError(None, f"latent_dim must be >= 0, got {cfg.latent_dim}")
     n = num_primitives(cfg.kernel, cfg.budget_bytes, cfg.latent_dim)
     if n < 1:
-        raise InputError(None, f"budget of {cfg.budget_bytes} bytes holds no {cfg.kernel} primitive",
-                         "raise --budget-bytes")
+        net = network_bytes(cfg.kernel, cfg.latent_dim)
+        needs = net + 4 * floats_per_primitive(cfg.kernel, cfg.latent_dim)
+        paid = f" after its {net}-byte shared decoder" if net else ""
+        raise InputError(None, f"budget of {cfg.budget_bytes} bytes holds no {cfg.kernel} primitive{paid}",
+                         f"raise --budget-bytes to at least {needs}")
     if cfg.iters < 0:
         raise InputError(None, f"iters must be >= 0, got {cfg.iters}")
     h, w = target.shape[:2]
