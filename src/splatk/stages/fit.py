@@ -52,8 +52,7 @@ def scale_schedules_to_run(cfg: "FitConfig", keep: frozenset | set = frozenset()
     the SH degree twice, and leave a learned kernel's networks frozen for the whole run. Runs
     with a time budget are left alone (their schedules follow progress). Settings named in
     ``keep`` (set explicitly by the user) and the learned kernel's explicit ``freeze_iters``
-    stay as given. Learning rates are not touched here (``splatk bench`` raises some on short
-    runs; see stages/bench.py).
+    stay as given. Learning rates are left to :func:`boost_short_run_lrs`.
     """
     t = cfg.train
     if t.time_budget is not None or t.iters >= FULL_ITERS:

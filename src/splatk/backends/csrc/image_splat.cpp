@@ -18,7 +18,6 @@
 // OpenMP over tiles; each tile adds its splats in order, so the image is bitwise reproducible
 // for any thread count. Backward: OpenMP over splats; each splat sums its own pixels' terms
 // (the image gradient is read only), so there is nothing to reduce and no atomics.
-#include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
 #include <ATen/ops/zeros_like.h>
 #include <omp.h>
