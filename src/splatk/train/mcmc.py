@@ -3,7 +3,12 @@
 Every ``refine_every`` iterations inside the refine window: relocate dead primitives
 (opacity <= 0.005) onto live ones sampled by opacity, grow by 5% up to the budget, and
 perturb positions with opacity-gated noise shaped by each primitive's covariance.
-Relocation only splits opacity, o' = 1 - (1 - o)^(1 / (N + 1)); scales are kept (DBS).
+Relocation splits opacity, o' = 1 - (1 - o)^(1 / N) for a source copied N - 1 times, and keeps
+the scales (DBS, kernel-agnostic; ``split_scales: keep``, the default). ``split_scales: shrink``
+also shrinks the copies' scales by 3DGS-MCMC's Eq. 9 (:func:`split_scale_factor`, derived for
+Gaussians), so that the N stacked copies draw what the source drew instead of a fatter blob. Over
+two seeds per scene (benchmarks/README.md, "MCMC split scales") its effect on test PSNR was
+within the seed-to-seed spread, so the default stays DBS's.
 """
 from __future__ import annotations
 
@@ -25,6 +30,30 @@ class MCMCConfig:
     min_opacity: float = 0.005
     growth: float = 1.05
     noise_lr: float = 5e4
+    #: scales of split copies: keep (DBS) | shrink (3DGS-MCMC Eq. 9)
+    split_scales: str = "keep"
+
+
+#: 3DGS-MCMC's binomial table stops at 51 copies (gsplat RelocationCUDA.cu n_max)
+MAX_SPLIT_COPIES = 51
+
+
+def split_scale_factor(opacity: torch.Tensor, new_opacity: torch.Tensor, copies: torch.Tensor) -> torch.Tensor:
+    """3DGS-MCMC Eq. 9: the factor on the scales of ``copies`` stacked copies of a Gaussian of
+    ``opacity`` that each get ``new_opacity``. Eq. 9's double sum over i and k collapses
+    (hockey-stick identity) to o / sum_{j=1..N} C(N, j) (-1)^(j-1) o'^j / sqrt(j).
+    float64: the alternating sum cancels for large N."""
+    o, o_new = opacity.double(), new_opacity.double()
+    n = copies.clamp(1, MAX_SPLIT_COPIES).double()
+    j = torch.arange(1, MAX_SPLIT_COPIES + 1, dtype=torch.float64, device=o.device)
+    log_binom = torch.lgamma(n[:, None] + 1) - torch.lgamma(j + 1) - torch.lgamma(n[:, None] - j + 1)
+    terms = torch.exp(log_binom) * o_new[:, None] ** j / torch.sqrt(j)
+    terms = torch.where(j <= n[:, None], terms, torch.zeros_like(terms))
+    sign = torch.where(j % 2 == 1, 1.0, -1.0)
+    denom = (terms * sign).sum(1)
+    factor = o / denom
+    # a cancelled sum (denom <= 0 in float64, never seen for N <= 51) keeps the scale
+    return torch.where(torch.isfinite(factor) & (denom > 0), factor, torch.ones_like(factor)).to(opacity.dtype)
 
 
 class MCMCStrategy:
@@ -48,13 +77,25 @@ class MCMCStrategy:
         self.inject_noise(model, means_lr, generator)
         self.last_stats = {"relocated": relocated, "added": added, "num": model.num_primitives}
 
-    def _split_opacity(self, model, sources: torch.Tensor) -> torch.Tensor:
-        """New opacity of each sampled source given how often it was sampled (DBS rule)."""
-        counts = torch.bincount(sources, minlength=model.num_primitives)[sources]
+    def shrinks_split_scales(self) -> bool:
+        rule = self.cfg.split_scales
+        if rule not in ("keep", "shrink"):
+            raise ValueError(f"split_scales must be keep or shrink, got {rule!r}")
+        return rule == "shrink"
+
+    def _split(self, model, sources: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(new opacity logit, new log-scales or None when scales are kept) of each sampled
+        source, given how often it was sampled; the source and its copies all get them."""
+        copies = torch.bincount(sources, minlength=model.num_primitives)[sources] + 1
         o = model.opacities[sources]
-        new_o = 1.0 - torch.pow(1.0 - o, 1.0 / (counts.to(o.dtype) + 1.0))
+        new_o = 1.0 - torch.pow(1.0 - o, 1.0 / copies.to(o.dtype))
         eps = torch.finfo(o.dtype).eps
-        return new_o.clamp(self.cfg.min_opacity, 1.0 - eps)
+        new_o = new_o.clamp(self.cfg.min_opacity, 1.0 - eps)
+        log_scales = None
+        if self.shrinks_split_scales():
+            factor = split_scale_factor(o, new_o, copies)
+            log_scales = model.prims["log_scales"].data[sources] + torch.log(factor)[:, None]
+        return torch.logit(new_o), log_scales
 
     def _sample_sources(self, model, n: int, alive: torch.Tensor, generator) -> torch.Tensor:
         probs = model.opacities.clone()
@@ -74,11 +115,13 @@ class MCMCStrategy:
             return 0
         dead_idx = torch.nonzero(dead).flatten()
         src = self._sample_sources(model, n_dead, alive, generator)
-        new_logit = torch.logit(self._split_opacity(model, src))
+        new_logit, new_log_scales = self._split(model, src)
         for name, p in model.prims.items():
             p.data[dead_idx] = p.data[src]
-        model.prims["opacity_logits"].data[src] = new_logit
-        model.prims["opacity_logits"].data[dead_idx] = new_logit
+        for idx in (src, dead_idx):
+            model.prims["opacity_logits"].data[idx] = new_logit
+            if new_log_scales is not None:
+                model.prims["log_scales"].data[idx] = new_log_scales
         opt.reset_moments(torch.cat([src, dead_idx]))
         return n_dead
 
@@ -92,11 +135,12 @@ class MCMCStrategy:
         if int(alive.sum()) == 0:
             return 0
         src = self._sample_sources(model, n_add, alive, generator)
-        new_logit = torch.logit(self._split_opacity(model, src))
+        new_logit, new_log_scales = self._split(model, src)
         model.prims["opacity_logits"].data[src] = new_logit
+        if new_log_scales is not None:
+            model.prims["log_scales"].data[src] = new_log_scales
         opt.reset_moments(src)
         rows = {name: p.data[src].clone() for name, p in model.prims.items()}
-        rows["opacity_logits"] = new_logit
         opt.append_rows(rows)
         return n_add
 

@@ -56,6 +56,8 @@ class TrainConfig:
     refine_start: int = 500
     refine_stop: float = 25 / 30
     noise_lr: float = 5e4
+    #: MCMC split copies' scales: keep (DBS) | shrink (3DGS-MCMC Eq. 9; see splatk.train.mcmc)
+    split_scales: str = "keep"
     #: multiplies every learning rate (primitives, colour, kernel networks); 1 = the defaults
     lr_scale: float = 1.0
     #: multiplies the log-scale learning rate alone. 0.005 is tuned for 30k iterations; short
@@ -98,7 +100,7 @@ class Trainer:
             MCMCConfig(
                 cap_max=config.budget, refine_every=config.refine_every,
                 refine_start=config.refine_start, refine_stop=config.refine_stop,
-                noise_lr=config.noise_lr,
+                noise_lr=config.noise_lr, split_scales=config.split_scales,
             )
         )
         self._build_optimizers()
