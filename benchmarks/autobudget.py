@@ -1,7 +1,7 @@
 """`--budget auto` against its targets (issue #6), on real scenes.
 
     python benchmarks/autobudget.py [--scenes lego,fox,cup,bonsai] [--data ../shared/data]
-        [--out benchmarks/results/autobudget] [--iters 4000] [--downscale 4] [--threads 2]
+        [--out benchmarks/results/autobudget] [--iters 4000] [--downscale 4] [--threads 2] [--preset YAML]
 
 Per scene, through `splatk bench` (so runs are resumable and each writes its own JSON):
 
@@ -31,7 +31,7 @@ def bench(scene: Path, out: Path, budget: str, args) -> dict:
     ds = max(1.0, args.downscale / 2) if scene.name == "lego" else args.downscale
     cmd = ["splatk", "bench", str(scene), "--out", str(out), "--kernel", "gaussian", "--budget", budget,
            "--iters", str(args.iters), "--downscale", str(ds), "--threads", str(args.threads),
-           "--metrics", "psnr,ssim", "-q"]
+           "--metrics", "psnr,ssim", "-q"] + (["--preset", args.preset] if args.preset else [])
     print("$", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True)
     tag = "bauto" if budget == "auto" else f"b{budget}"
@@ -50,6 +50,7 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=4000)
     ap.add_argument("--downscale", type=float, default=4.0)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--preset", help="bench YAML whose defaults every run gets (e.g. benchmarks/split_shrink.yaml)")
     args = ap.parse_args()
     out = Path(args.out)
     rows = []
