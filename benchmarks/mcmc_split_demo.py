@@ -4,7 +4,7 @@
 
 Fits the demo scene (`splatk demo`'s settings: presets/demo.yaml, Gaussian, 3000 primitives,
 1500 iterations, random init, schedules scaled to the run) once per seed with the split copies'
-scales kept (DBS) and shrunk (3DGS-MCMC Eq. 9, the default), 1 thread each, and prints the test
+scales kept (DBS, the default) and shrunk (3DGS-MCMC Eq. 9), 1 thread each, and prints the test
 PSNR per seed and the mean. The demo's outcome swings by several dB with the seed, which is what
 this measures against the rule's effect.
 """

@@ -60,6 +60,9 @@ class MCMCStrategy:
     name = "mcmc"
 
     def __init__(self, config: MCMCConfig):
+        # checked here, not at the first refine step hundreds of iterations into a run
+        if config.split_scales not in ("keep", "shrink"):
+            raise ValueError(f"split_scales must be keep or shrink, got {config.split_scales!r}")
         self.cfg = config
         self.last_stats: dict = {}
 
@@ -77,12 +80,6 @@ class MCMCStrategy:
         self.inject_noise(model, means_lr, generator)
         self.last_stats = {"relocated": relocated, "added": added, "num": model.num_primitives}
 
-    def shrinks_split_scales(self) -> bool:
-        rule = self.cfg.split_scales
-        if rule not in ("keep", "shrink"):
-            raise ValueError(f"split_scales must be keep or shrink, got {rule!r}")
-        return rule == "shrink"
-
     def _split(self, model, sources: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(new opacity logit, new log-scales or None when scales are kept) of each sampled
         source, given how often it was sampled; the source and its copies all get them."""
@@ -92,7 +89,7 @@ class MCMCStrategy:
         eps = torch.finfo(o.dtype).eps
         new_o = new_o.clamp(self.cfg.min_opacity, 1.0 - eps)
         log_scales = None
-        if self.shrinks_split_scales():
+        if self.cfg.split_scales == "shrink":
             factor = split_scale_factor(o, new_o, copies)
             log_scales = model.prims["log_scales"].data[sources] + torch.log(factor)[:, None]
         return torch.logit(new_o), log_scales
