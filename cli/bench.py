@@ -54,7 +54,7 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 @click.option("--metrics", help="Comma-separated: psnr,ssim,lpips. [default: psnr,ssim,lpips]")
 @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), help="LPIPS network. [default: alex]")
 @click.option("--no-scale-schedules", is_flag=True,
-              help="Keep 30k-iteration schedules (refine start/interval, SH steps, learned freeze) in short runs.")
+              help="Keep 30k-iteration schedules (refine start/interval, SH steps, learned freeze, MCMC noise) in short runs.")
 @click.option("--stability", is_flag=True,
               help="Run the stability matrix (kernels x conditions) instead of the method grid.")
 @click.option("--charts-only", is_flag=True, help="Only redraw the charts and table from OUT/results.")

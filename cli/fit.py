@@ -40,7 +40,8 @@ from .progress import training_progress
 @click.option("--checkpoint-every", type=int, help="Checkpoint interval in iterations. [default: 1000]")
 @click.option("--scale-schedules/--no-scale-schedules", default=None,
               help="Runs shorter than 30k iterations shrink the 30k step schedules (refine start and "
-                   "interval, SH degree steps, learned-kernel freeze) in proportion. [default: scale]")
+                   "interval, SH degree steps, learned-kernel freeze) in proportion and raise MCMC's "
+                   "noise by 30k / iters (at most x10). [default: scale]")
 @click.option("--short-run-lrs/--no-short-run-lrs", default=None,
               help="Runs shorter than 30k iterations also raise the LRs tuned for 30k (log-scales, "
                    "learned latents and networks), as `splatk bench` does. [default: off]")

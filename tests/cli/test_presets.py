@@ -55,10 +55,12 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     train = doc["settings"]["train"]
     assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (5, 5, 10)
     assert "scaled to the run length" in doc["sources"]["refine_every"]
+    assert train["noise_lr"] == 5e5  # MCMC noise x 30k/300, capped at x10
     res = CliRunner().invoke(cli, base + ["--no-scale-schedules", "--out", str(tmp_path / "b")])
     assert res.exit_code == 0, res.output
     train = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["settings"]["train"]
     assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (100, 500, 1000)
+    assert train["noise_lr"] == 5e4
 
     res = CliRunner().invoke(cli, base + ["--kernel", "learned", "--short-run-lrs", "--out", str(tmp_path / "c")])
     assert res.exit_code == 0, res.output
@@ -80,3 +82,10 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     learned = FitConfig(kernel="learned")
     learned.train.iters = 3000
     assert scale_schedules_to_run(learned)["freeze_iters"] == 200
+    two_thirds = FitConfig()
+    two_thirds.train.iters = 20_000
+    scale_schedules_to_run(two_thirds)
+    assert scale_schedules_to_run(two_thirds)["noise_lr"] == pytest.approx(5e4 * 1.5)  # scaling twice: same
+    kept = FitConfig()
+    kept.train.iters, kept.train.noise_lr = 2000, 7e3
+    assert "noise_lr" not in scale_schedules_to_run(kept, keep={"noise_lr"}) and kept.train.noise_lr == 7e3

@@ -42,6 +42,34 @@ def test_short_fit_raises_test_psnr(kernel):
     assert tr.model.num_primitives <= 150  # ...but not past the budget
 
 
+def test_collapse_without_nan_rolls_back():
+    """A run whose image collapses (here: every primitive made transparent mid-run, as a
+    divergent step can) raises no NaN; the loss check rolls it back to the last healthy
+    snapshot with a smaller step, and it ends where a healthy run ends. A healthy run of the
+    same settings never trips the check."""
+    scene = synthetic_scene(num_views=8)
+
+    def trainer():
+        torch.manual_seed(0)
+        m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
+        return Trainer(scene, m, TrainConfig(iters=300, budget=150, backend="torch", refine_start=100,
+                                             refine_every=50, snapshot_every=50))
+
+    healthy = trainer()
+    healthy.run()
+    assert not [e for e in healthy.events if e["event"] == "loss_rollback"]
+    broken = trainer()
+    broken.run(should_stop=lambda: broken.it >= 200)
+    with torch.no_grad():
+        broken.model.prims["opacity_logits"].data.fill_(-30.0)  # an empty image, no NaN
+    broken.run(should_stop=lambda: broken.it >= 260 or any(e["event"] == "loss_rollback" for e in broken.events))
+    rollbacks = [e for e in broken.events if e["event"] == "loss_rollback"]
+    assert len(rollbacks) == 1 and broken.it == 200 and broken.lr_scale == 0.5, broken.events
+    broken.run()
+    assert broken.it == 300
+    assert mean_test_psnr(broken.model, scene) > mean_test_psnr(healthy.model, scene) - 1.0
+
+
 def test_training_state_round_trip():
     """Stopping, saving state and continuing gives the same parameters as not stopping.
 

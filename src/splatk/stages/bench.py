@@ -387,6 +387,7 @@ def run_one(
         "iterations": summary["iterations"],
         "initial_psnr": summary.get("initial_psnr"),
         "nan_rollbacks": sum(1 for e in events if e.get("event") == "nan_rollback"),
+        "loss_rollbacks": sum(1 for e in events if e.get("event") == "loss_rollback"),
         "events": events,
         "threads": metrics["threads"],
         "backend": metrics["backend"],
@@ -589,7 +590,8 @@ def run_stability(
             "base": cfg.defaults,
             "collapse_db": COLLAPSE_DB,
             "cells": [{k: r.get(k) for k in ("row", "col", "status", "note", "psnr", "initial_psnr",
-                                             "nan_rollbacks", "below_initial", "diverged", "nan",
+                                             "nan_rollbacks", "loss_rollbacks", "below_initial",
+                                             "diverged", "nan",
                                              "collapsed", "train_seconds", "num_primitives", "error",
                                              "threads")}
                       for r in cells],

@@ -161,6 +161,8 @@ def draw_stability_heatmap(matrix: dict, stem: str | Path) -> list[Path]:
                 marks.append(f"init {cl['initial_psnr']:.1f}")
             if cl.get("nan_rollbacks"):
                 marks.append(f"NaN×{cl['nan_rollbacks']}")
+            if cl.get("loss_rollbacks"):
+                marks.append(f"rollback×{cl['loss_rollbacks']}")
             if cl.get("below_initial"):
                 marks.append("↓init")
             lines.append(" ".join(marks))

@@ -41,6 +41,9 @@ FULL_ITERS = 30_000
 RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
 #: the learned kernel freezes its networks for this many of the 30k iterations (paper Sec. 4.5)
 LEARNED_FREEZE_ITERS = 2000
+#: short runs raise MCMC's position noise (DBS's noise_lr, tuned for 30k iterations) by
+#: 30k / iters, at most this much
+NOISE_LR_MULT_MAX = 10.0
 
 
 def scale_schedules_to_run(cfg: "FitConfig", keep: frozenset | set = frozenset()) -> dict:
@@ -49,10 +52,14 @@ def scale_schedules_to_run(cfg: "FitConfig", keep: frozenset | set = frozenset()
 
     Unscaled, a 2000-iteration run would refine only every 100 steps, so MCMC's 5% growth per
     refine could not reach the budget (a quarter-budget random init ends near 43% of it), raise
-    the SH degree twice, and leave a learned kernel's networks frozen for the whole run. Runs
-    with a time budget are left alone (their schedules follow progress). Settings named in
-    ``keep`` (set explicitly by the user) and the learned kernel's explicit ``freeze_iters``
-    stay as given. Learning rates are left to :func:`boost_short_run_lrs`.
+    the SH degree twice, and leave a learned kernel's networks frozen for the whole run.
+    MCMC's position noise grows by 30k / iters (at most x10): the means get that many fewer
+    gradient steps, and the noise is what moves near-transparent primitives to where they are
+    needed (benchmarks/README.md, "MCMC noise in short runs": fox, random init, 2000 iterations,
+    +2.3 dB over two seeds). Runs with a time budget are left alone (their schedules follow
+    progress). Settings named in ``keep`` (set explicitly by the user) and the learned kernel's
+    explicit ``freeze_iters`` stay as given. Learning rates are left to
+    :func:`boost_short_run_lrs`.
     """
     t = cfg.train
     if t.time_budget is not None or t.iters >= FULL_ITERS:
@@ -63,6 +70,9 @@ def scale_schedules_to_run(cfg: "FitConfig", keep: frozenset | set = frozenset()
         if key not in keep:
             setattr(t, key, max(lo, round(full * s)))
             scaled[key] = getattr(t, key)
+    if "noise_lr" not in keep:
+        # from the 30k default, not the current value, so scaling twice changes nothing
+        t.noise_lr = scaled["noise_lr"] = TrainConfig.noise_lr * min(NOISE_LR_MULT_MAX, 1 / s)
     if cfg.kernel == "learned" and "freeze_iters" not in cfg.kernel_options:
         cfg.kernel_options["freeze_iters"] = scaled["freeze_iters"] = round(LEARNED_FREEZE_ITERS * s)
     return scaled
