@@ -6,13 +6,15 @@
 Fits the demo scene (`splatk demo`'s settings: presets/demo.yaml, Gaussian, 3000 primitives,
 1500 iterations, random init, schedules scaled to the run as `splatk fit` does) once per seed and
 variant, 1 thread per run, ``--jobs`` runs at a time, and prints the test and train PSNR per seed
-and their mean and minimum per variant. A variant's settings (TrainConfig or FitConfig fields)
-are applied after the scaling, so they stay as given. Without ``--variant``: the defaults only.
+and their mean and minimum per variant. A variant's settings (TrainConfig or FitConfig fields,
+and ``short_run_lrs`` as in the preset) are applied after the scaling, so they stay as given.
+Without ``--variant``: the defaults only.
 
 The demo's outcome swings by several dB with the seed; this is how a change to the defaults is
 judged on it. Examples (benchmarks/README.md):
 
     --variant default= --variant dbs-noise=noise_lr:5e4          # session 8: MCMC noise
+    --variant default= --variant short-run-lrs=short_run_lrs:true # `fit --short-run-lrs`
     --variant keep=split_scales:keep,noise_lr:5e4 --variant shrink=split_scales:shrink,noise_lr:5e4
 """
 from __future__ import annotations
@@ -29,13 +31,17 @@ PRESET = Path(__file__).resolve().parents[1] / "presets" / "demo.yaml"
 
 
 def demo_config(seed: int, overrides: dict):
-    from splatk.stages.fit import FitConfig, scale_schedules_to_run
+    from splatk.stages.fit import FitConfig, boost_short_run_lrs, scale_schedules_to_run
 
     p = yaml.safe_load(PRESET.read_text())
+    overrides = dict(overrides)
+    short_run_lrs = overrides.pop("short_run_lrs", p.get("short_run_lrs", False))  # fit's default: off
     cfg = FitConfig(kernel=p["kernel"], sh_degree=p["sh_degree"], threads=1)
     t = cfg.train
     t.budget, t.iters, t.init, t.seed = p["budget"], p["iters"], p["init"], seed
     scale_schedules_to_run(cfg)  # as `splatk fit` does for a 1500-iteration run
+    if short_run_lrs:
+        boost_short_run_lrs(cfg)
     for key, value in overrides.items():
         target = t if hasattr(t, key) else cfg
         if not hasattr(target, key):
