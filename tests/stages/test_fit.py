@@ -70,6 +70,25 @@ def test_collapse_without_nan_rolls_back():
     assert mean_test_psnr(broken.model, scene) > mean_test_psnr(healthy.model, scene) - 1.0
 
 
+def test_collapse_rollback_to_a_worse_snapshot_does_not_loop():
+    """The loss's running mean lags the loss, so the last healthy snapshot can already render
+    worse than the lowest mean seen. Rolling back to it must not trip the check again and again
+    (the step size halving towards zero): the run finishes."""
+    scene = synthetic_scene(num_views=8)
+    torch.manual_seed(0)
+    m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
+    tr = Trainer(scene, m, TrainConfig(iters=400, budget=150, backend="torch", refine_start=100,
+                                       refine_every=50, snapshot_every=50))
+    tr.run(should_stop=lambda: tr.it >= 200)
+    with torch.no_grad():
+        tr.model.prims["opacity_logits"].data.fill_(-30.0)
+    tr._snapshot = tr.state_dict()  # a "healthy" snapshot of the collapsed model
+    steps = []
+    tr.run(on_step=lambda info: steps.append(info.it), should_stop=lambda: len(steps) > 2000)
+    assert tr.it == 400, [e["message"] for e in tr.events][-3:]
+    assert len([e for e in tr.events if e["event"] == "loss_rollback"]) <= 3
+
+
 def test_training_state_round_trip():
     """Stopping, saving state and continuing gives the same parameters as not stopping.
 

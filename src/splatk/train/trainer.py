@@ -245,8 +245,10 @@ class Trainer:
                 for p in self.model.prims.values():
                     p.data = torch.nan_to_num(p.data, nan=0.0, posinf=0.0, neginf=0.0)
         self.lr_scale = lr_scale * 0.5
-        # the running mean starts again from the restored state's losses
-        self.loss_mean, self._steps_since_reset = None, 0
+        # the check starts again from the restored state's losses, lowest value included: the
+        # snapshot can already be worse than the lowest mean (the mean lags the loss), and
+        # judging it against that would roll back to it again and again at ever smaller steps
+        self.loss_mean, self.best_loss_mean, self._steps_since_reset = None, None, 0
         msg = f"iteration {it}: {reason}; rolled back to iteration {self.it}, step size x{self.lr_scale:g}"
         self.events.append({"iteration": it, "event": kind, "message": msg})
         return msg
