@@ -42,29 +42,36 @@ def test_short_fit_raises_test_psnr(kernel):
     assert tr.model.num_primitives <= 150  # ...but not past the budget
 
 
-def test_collapse_without_nan_rolls_back():
-    """A run whose image collapses (here: every primitive made transparent mid-run, as a
-    divergent step can) raises no NaN; the loss check rolls it back to the last healthy
-    snapshot with a smaller step, and it ends where a healthy run ends. A healthy run of the
-    same settings never trips the check."""
-    scene = synthetic_scene(num_views=8)
+def collapse_trainer(scene, iters: int) -> Trainer:
+    torch.manual_seed(0)
+    m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
+    return Trainer(scene, m, TrainConfig(iters=iters, budget=150, backend="torch", refine_start=100,
+                                         refine_every=50, snapshot_every=50))
 
-    def trainer():
-        torch.manual_seed(0)
-        m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
-        return Trainer(scene, m, TrainConfig(iters=300, budget=150, backend="torch", refine_start=100,
-                                             refine_every=50, snapshot_every=50))
 
-    healthy = trainer()
-    healthy.run()
-    assert not [e for e in healthy.events if e["event"] == "loss_rollback"]
-    broken = trainer()
-    broken.run(should_stop=lambda: broken.it >= 200)
+def make_transparent(tr: Trainer) -> None:
+    """An empty image without a NaN, as a divergent step can leave."""
     with torch.no_grad():
-        broken.model.prims["opacity_logits"].data.fill_(-30.0)  # an empty image, no NaN
-    broken.run(should_stop=lambda: broken.it >= 260 or any(e["event"] == "loss_rollback" for e in broken.events))
-    rollbacks = [e for e in broken.events if e["event"] == "loss_rollback"]
-    assert len(rollbacks) == 1 and broken.it == 200 and broken.lr_scale == 0.5, broken.events
+        tr.model.prims["opacity_logits"].data.fill_(-30.0)
+
+
+def loss_rollbacks(tr: Trainer) -> list[dict]:
+    return [e for e in tr.events if e["event"] == "loss_rollback"]
+
+
+def test_collapse_without_nan_rolls_back():
+    """A run whose image collapses (here: every primitive made transparent mid-run) raises no
+    NaN; the loss check rolls it back to the last healthy snapshot with a smaller step, and it
+    ends where a healthy run ends. A healthy run of the same settings never trips the check."""
+    scene = synthetic_scene(num_views=8)
+    healthy = collapse_trainer(scene, 300)
+    healthy.run()
+    assert not loss_rollbacks(healthy)
+    broken = collapse_trainer(scene, 300)
+    broken.run(should_stop=lambda: broken.it >= 200)
+    make_transparent(broken)
+    broken.run(should_stop=lambda: broken.it >= 260 or bool(loss_rollbacks(broken)))
+    assert len(loss_rollbacks(broken)) == 1 and broken.it == 200 and broken.lr_scale == 0.5, broken.events
     broken.run()
     assert broken.it == 300
     assert mean_test_psnr(broken.model, scene) > mean_test_psnr(healthy.model, scene) - 1.0
@@ -75,18 +82,14 @@ def test_collapse_rollback_to_a_worse_snapshot_does_not_loop():
     worse than the lowest mean seen. Rolling back to it must not trip the check again and again
     (the step size halving towards zero): the run finishes."""
     scene = synthetic_scene(num_views=8)
-    torch.manual_seed(0)
-    m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
-    tr = Trainer(scene, m, TrainConfig(iters=400, budget=150, backend="torch", refine_start=100,
-                                       refine_every=50, snapshot_every=50))
+    tr = collapse_trainer(scene, 400)
     tr.run(should_stop=lambda: tr.it >= 200)
-    with torch.no_grad():
-        tr.model.prims["opacity_logits"].data.fill_(-30.0)
+    make_transparent(tr)
     tr._snapshot = tr.state_dict()  # a "healthy" snapshot of the collapsed model
     steps = []
     tr.run(on_step=lambda info: steps.append(info.it), should_stop=lambda: len(steps) > 2000)
     assert tr.it == 400, [e["message"] for e in tr.events][-3:]
-    assert len([e for e in tr.events if e["event"] == "loss_rollback"]) <= 3
+    assert len(loss_rollbacks(tr)) <= 3
 
 
 def test_training_state_round_trip():

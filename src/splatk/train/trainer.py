@@ -74,7 +74,7 @@ class TrainConfig:
     scales_lr_mult: float = 1.0
     backend: str = "auto"
     device: str = "cpu"
-    #: keep an in-memory snapshot this often for NaN rollback
+    #: keep an in-memory snapshot this often for rollback (NaN or collapse)
     snapshot_every: int = 200
     #: roll back (as for a NaN) when the loss's running mean rises above this many times its
     #: lowest value: a run can collapse to an empty image without a NaN (cup, learning rates
