@@ -59,19 +59,30 @@ def loss_rollbacks(tr: Trainer) -> list[dict]:
     return [e for e in tr.events if e["event"] == "loss_rollback"]
 
 
-def test_collapse_without_nan_rolls_back():
-    """A run whose image collapses (here: every primitive made transparent mid-run) raises no
-    NaN; the loss check rolls it back to the last healthy snapshot with a smaller step, and it
-    ends where a healthy run ends. A healthy run of the same settings never trips the check."""
+def make_white(tr: Trainer) -> None:
+    """A wrong image without a NaN and with every primitive still opaque: colours clamped at
+    white, the background, where they get no gradient (black ones are learnt back at once)."""
+    with torch.no_grad():
+        tr.model.prims["sh0"].data.fill_(10.0)
+
+
+@pytest.mark.parametrize("collapse, reason", [(make_transparent, "every primitive is transparent"),
+                                              (make_white, "loss diverged")])
+def test_collapse_without_nan_rolls_back(collapse, reason):
+    """A run whose image collapses mid-run raises no NaN: every primitive made transparent (the
+    transparency check) or every colour made white, the background (the loss check). It rolls
+    back to the last healthy snapshot with a smaller step, and ends where a healthy run ends. A
+    healthy run of the same settings never trips either check."""
     scene = synthetic_scene(num_views=8)
     healthy = collapse_trainer(scene, 300)
     healthy.run()
     assert not loss_rollbacks(healthy)
     broken = collapse_trainer(scene, 300)
     broken.run(should_stop=lambda: broken.it >= 200)
-    make_transparent(broken)
+    collapse(broken)
     broken.run(should_stop=lambda: broken.it >= 260 or bool(loss_rollbacks(broken)))
     assert len(loss_rollbacks(broken)) == 1 and broken.it == 200 and broken.lr_scale == 0.5, broken.events
+    assert reason in loss_rollbacks(broken)[0]["message"]
     broken.run()
     assert broken.it == 300
     assert mean_test_psnr(broken.model, scene) > mean_test_psnr(healthy.model, scene) - 1.0
@@ -90,6 +101,26 @@ def test_collapse_rollback_to_a_worse_snapshot_does_not_loop():
     tr.run(on_step=lambda info: steps.append(info.it), should_stop=lambda: len(steps) > 2000)
     assert tr.it == 400, [e["message"] for e in tr.events][-3:]
     assert len(loss_rollbacks(tr)) <= 3
+
+
+def test_loss_check_judges_against_the_start_as_well_as_the_lowest_mean():
+    """A run that collapses before it ever improved has its lowest mean near its start, so a
+    rise to 1.4x is below divergence_factor (1.5) x lowest; it is still worse than where the run
+    began (START_LOSS_FACTOR 1.25) and must roll back. A run that improved and then gave a little
+    back must not; divergence_factor 0 turns both tests off."""
+    scene = synthetic_scene(num_views=8)
+
+    def fired(losses, **cfg):
+        tr = collapse_trainer(scene, 10)
+        for k, v in cfg.items():
+            setattr(tr.cfg, k, v)
+        return [i for i, loss in enumerate(losses) if tr._diverging(loss)]
+
+    never_improved = [1.0] * 50 + [1.4] * 200
+    assert TrainConfig().divergence_factor == 1.5 and fired(never_improved)
+    assert fired(never_improved)[0] > 60  # judged on the running mean, not one step
+    assert not fired([1.0] * 50 + [0.5] * 100 + [0.7] * 200)
+    assert not fired(never_improved, divergence_factor=0.0)
 
 
 def test_training_state_round_trip():

@@ -6,7 +6,8 @@ optimiser moments, RNGs, density-control statistics, elapsed time - round-trips 
 :meth:`Trainer.state_dict` / :meth:`Trainer.load_state_dict`, which checkpoints, resume and
 rollback all use. A rollback (restore the last healthy snapshot, halve every step size) follows
 a non-finite loss or parameter, and a collapse without a NaN: the loss's running mean rising
-past ``divergence_factor`` x its lowest value.
+past ``divergence_factor`` x its lowest value or past START_LOSS_FACTOR x its first value, or
+every primitive turning transparent.
 """
 from __future__ import annotations
 
@@ -35,6 +36,12 @@ LOSS_WINDOW = 50
 #: periodic rollback snapshots are only taken while the running mean is within this factor of
 #: its lowest value
 HEALTHY_LOSS_FACTOR = 1.25
+#: ... and a run whose running mean rises this far above its first value (the plain mean of its
+#: first LOSS_WINDOW steps) is rolled back as well: a run that collapses before it ever improved
+#: has its lowest mean near its start, where divergence_factor x lowest cannot see it (short-run
+#: LRs and LR x10, 1000 iterations: lego learned k=2 9.65 -> 24.46 dB, fox Gaussian 11.58 -> 16.81
+#: dB with this check; benchmarks/results/stability9)
+START_LOSS_FACTOR = 1.25
 
 
 @dataclass
@@ -78,8 +85,10 @@ class TrainConfig:
     snapshot_every: int = 200
     #: roll back (as for a NaN) when the loss's running mean rises above this many times its
     #: lowest value: a run can collapse to an empty image without a NaN (cup, learning rates
-    #: x10, 1000 iterations: loss 0.10 -> 0.66, 4.8 dB). 0 turns the check off.
-    divergence_factor: float = 2.0
+    #: x10, 1000 iterations: loss 0.10 -> 0.66, 4.8 dB). 2 missed early collapses, whose lowest
+    #: mean is still near the initial loss (fox, learned k=2, short-run LRs and LR x10: loss
+    #: 0.26 -> 0.57 by iteration 200, 4.8 dB). 0 turns the check off.
+    divergence_factor: float = 1.5
 
 
 @dataclass
@@ -106,9 +115,11 @@ class Trainer:
         self.elapsed = 0.0
         self.events: list[dict] = []
         self.lr_scale = 1.0  # lowered after a NaN rollback
-        # running mean of the loss (about the last LOSS_WINDOW steps) and its lowest value
+        # running mean of the loss (about the last LOSS_WINDOW steps), its lowest value and its
+        # first value (once it has seen LOSS_WINDOW steps)
         self.loss_mean: float | None = None
         self.best_loss_mean: float | None = None
+        self.start_loss_mean: float | None = None
         self._steps_since_reset = 0
         self.view_gen = torch.Generator().manual_seed(config.seed)
         self.mcmc_gen = torch.Generator(device=self.device).manual_seed(config.seed + 1)
@@ -125,6 +136,8 @@ class Trainer:
         # the cpu backend also fuses the D-SSIM loss (backends.fused_cpu; same value)
         self.fused = use_fused(resolve_backend(config.backend, self.device), self.device)
         self._snapshot = None
+        # False while the snapshot a rollback would restore is itself all transparent
+        self._transparent_check = True
 
     # ---- optimisers and schedules ------------------------------------------------------
     def _build_optimizers(self) -> None:
@@ -193,11 +206,16 @@ class Trainer:
             elif self._diverging(float(loss.detach())):
                 event = self._rollback(f"loss diverged (running mean {self.loss_mean:.4g}, lowest "
                                        f"{self.best_loss_mean:.4g})", kind="loss_rollback")
+            elif self._all_transparent():
+                event = self._rollback("every primitive is transparent (opacity <= "
+                                       f"{self.strategy.cfg.min_opacity:g})", kind="loss_rollback")
             else:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
                 # a snapshot taken while the loss is already climbing would be rolled back to
-                if self.it % self.cfg.snapshot_every == 0 and self._loss_healthy():
+                if (self.it % self.cfg.snapshot_every == 0 and self._loss_healthy()
+                        and not self._model_transparent()):
                     self._snapshot = self.state_dict()
+                    self._transparent_check = True
         with torch.no_grad():
             mse = ((out.image.detach().clamp(0, 1) - target) ** 2).mean().item()
         self.elapsed += time.perf_counter() - t0
@@ -216,19 +234,46 @@ class Trainer:
 
     def _diverging(self, loss: float) -> bool:
         """Update the loss's running mean; True when it has risen past ``divergence_factor`` x
-        its lowest value (judged once the mean has seen LOSS_WINDOW steps since the last reset)."""
-        a = 1.0 / LOSS_WINDOW
-        self.loss_mean = loss if self.loss_mean is None else (1 - a) * self.loss_mean + a * loss
+        its lowest value or past START_LOSS_FACTOR x its first value (judged once the mean has
+        seen LOSS_WINDOW steps since the last reset)."""
         self._steps_since_reset += 1
+        # the plain mean over the first LOSS_WINDOW steps, then an exponential one: seeding the
+        # exponential mean with the first loss would let one easy (or hard) view set the level
+        # that the rest of the run is judged against
+        a = 1.0 / min(self._steps_since_reset, LOSS_WINDOW)
+        self.loss_mean = loss if self.loss_mean is None else (1 - a) * self.loss_mean + a * loss
         if self._steps_since_reset < LOSS_WINDOW:
             return False
+        if self.start_loss_mean is None:
+            self.start_loss_mean = self.loss_mean
         if self.best_loss_mean is None or self.loss_mean < self.best_loss_mean:
             self.best_loss_mean = self.loss_mean
         f = self.cfg.divergence_factor
-        return f > 0 and self.loss_mean > f * self.best_loss_mean
+        return f > 0 and (self.loss_mean > f * self.best_loss_mean
+                          or self.loss_mean > START_LOSS_FACTOR * self.start_loss_mean)
+
+    def _all_transparent(self) -> bool:
+        """True when no primitive is above MCMC's dead-opacity line: relocation and growth sample
+        live primitives, so such a model can never come back, and its loss need not rise enough
+        to trip :meth:`_diverging` (lego, Beta, short-run LRs and LR x10: the scales and
+        opacities shrank to nothing by iteration 60, and the empty white image's loss, 0.215,
+        stayed below the random init's 0.33 and within 1.2x of the run's first mean)."""
+        if self.cfg.divergence_factor <= 0 or not self._transparent_check:
+            return False
+        return self._model_transparent()
+
+    def _model_transparent(self) -> bool:
+        logits = self.model.prims["opacity_logits"].detach()
+        dead = math.log(self.strategy.cfg.min_opacity / (1.0 - self.strategy.cfg.min_opacity))
+        return logits.numel() > 0 and bool(logits.max() <= dead)
 
     def _loss_healthy(self) -> bool:
-        return self.best_loss_mean is None or self.loss_mean <= HEALTHY_LOSS_FACTOR * self.best_loss_mean
+        # near the lowest mean, and no worse than where the run started: a snapshot of a run
+        # that is collapsing from the start would otherwise replace the good initial one
+        if self.best_loss_mean is None:
+            return True
+        return (self.loss_mean <= HEALTHY_LOSS_FACTOR * self.best_loss_mean
+                and self.loss_mean <= self.start_loss_mean)
 
     def _rollback(self, reason: str, kind: str = "nan_rollback") -> str:
         """Never die of a NaN (or a collapse): restore the last good state, halve the step
@@ -248,7 +293,9 @@ class Trainer:
         # the check starts again from the restored state's losses, lowest value included: the
         # snapshot can already be worse than the lowest mean (the mean lags the loss), and
         # judging it against that would roll back to it again and again at ever smaller steps
-        self.loss_mean, self.best_loss_mean, self._steps_since_reset = None, None, 0
+        self.loss_mean, self.best_loss_mean, self.start_loss_mean, self._steps_since_reset = None, None, None, 0
+        # a snapshot that is itself all transparent cannot be helped by rolling back to it again
+        self._transparent_check = not self._model_transparent()
         msg = f"iteration {it}: {reason}; rolled back to iteration {self.it}, step size x{self.lr_scale:g}"
         self.events.append({"iteration": it, "event": kind, "message": msg})
         return msg
@@ -286,7 +333,7 @@ class Trainer:
             "elapsed": self.elapsed,
             "lr_scale": self.lr_scale,
             "events": list(self.events),
-            "loss_mean": (self.loss_mean, self.best_loss_mean, self._steps_since_reset),
+            "loss_mean": (self.loss_mean, self.best_loss_mean, self._steps_since_reset, self.start_loss_mean),
             "prims": {k: v.detach().clone() for k, v in self.model.prims.items()},
             "kernel": copy.deepcopy(self.model.kernel.state_dict()),
             "opt": copy.deepcopy(self.opt.state_dict()),
@@ -305,7 +352,10 @@ class Trainer:
         self.elapsed = sd["elapsed"]
         self.lr_scale = sd.get("lr_scale", 1.0)
         self.events = list(sd.get("events", []))
-        self.loss_mean, self.best_loss_mean, self._steps_since_reset = sd.get("loss_mean", (None, None, 0))
+        # checkpoints before the start-loss check hold three values; theirs starts afresh
+        mean, best, steps, start = (tuple(sd.get("loss_mean", (None, None, 0))) + (None,))[:4]
+        self.loss_mean, self.best_loss_mean, self._steps_since_reset = mean, best, steps
+        self.start_loss_mean = start
         self.model.prims = nn.ParameterDict(
             {k: nn.Parameter(v.clone().to(self.device)) for k, v in sd["prims"].items()}
         )
