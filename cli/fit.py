@@ -43,8 +43,8 @@ from .progress import training_progress
                    "interval, SH degree steps, learned-kernel freeze) in proportion and raise MCMC's "
                    "noise by 30k / iters (at most x10). [default: scale]")
 @click.option("--short-run-lrs/--no-short-run-lrs", default=None,
-              help="Runs shorter than 30k iterations also raise the LRs tuned for 30k (log-scales, "
-                   "learned latents and networks), as `splatk bench` does. [default: off]")
+              help="With --scale-schedules, also raise the LRs tuned for 30k iterations (log-scales, "
+                   "learned latents and networks), as `splatk bench` does. [default: on]")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing, non-empty --out folder.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
@@ -56,9 +56,11 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
     values, sources = resolve_options(ctx, opts, load_preset(preset))
     cfg = build_fit_config(values)
     if not resume:
-        changed = scale_schedules_to_run(cfg) if values.get("scale_schedules") is not False else {}
-        if values.get("short_run_lrs"):
-            changed.update(boost_short_run_lrs(cfg))
+        changed = {}
+        if values.get("scale_schedules") is not False:  # as `splatk bench` does
+            changed = scale_schedules_to_run(cfg)
+            if values.get("short_run_lrs") is not False:
+                changed.update(boost_short_run_lrs(cfg))
         for key, value in changed.items():
             sources[key] = f"scaled to the run length ({cfg.train.iters} of 30000 iterations): {value}"
     console = Console(stderr=True)

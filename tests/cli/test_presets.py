@@ -39,8 +39,9 @@ def test_parse_duration_rejects_garbage():
 
 
 def test_fit_scales_schedules_to_short_runs(tmp_path):
-    """`splatk fit --iters N` (N < 30k) shrinks the 30k step schedules in proportion and says so
-    in config.yaml; --no-scale-schedules keeps them; 30k runs and timed runs are untouched."""
+    """`splatk fit --iters N` (N < 30k) shrinks the 30k step schedules in proportion, raises
+    the LRs tuned for 30k and says so in config.yaml; --no-scale-schedules keeps both,
+    --no-short-run-lrs (or the demo preset) keeps the LRs; 30k runs and timed runs are untouched."""
     import yaml
     from click.testing import CliRunner
     from splatk.data.synthetic import make_demo_scene
@@ -62,7 +63,8 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (100, 500, 1000)
     assert train["noise_lr"] == 5e4
 
-    res = CliRunner().invoke(cli, base + ["--kernel", "learned", "--short-run-lrs", "--out", str(tmp_path / "c")])
+    assert train["scales_lr_mult"] == 1.0  # the 30k run's LRs too
+    res = CliRunner().invoke(cli, base + ["--kernel", "learned", "--out", str(tmp_path / "c")])
     assert res.exit_code == 0, res.output
     doc = yaml.safe_load((tmp_path / "c" / "config.yaml").read_text())
     # 300 of 30k iterations: log-scale LR x sqrt(100) = 10, latent and network LRs x 10 (capped)
@@ -72,7 +74,15 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     assert doc["settings"]["kernel_options"]["freeze_iters"] == 20
     assert "scaled to the run length" in doc["sources"]["scales_lr_mult"]
     train_a = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())["settings"]["train"]
-    assert train_a["scales_lr_mult"] == 1.0  # off unless asked for
+    assert train_a["scales_lr_mult"] == 10.0  # the Gaussian's too
+    res = CliRunner().invoke(cli, base + ["--no-short-run-lrs", "--out", str(tmp_path / "d")])
+    assert res.exit_code == 0, res.output
+    train_d = yaml.safe_load((tmp_path / "d" / "config.yaml").read_text())["settings"]["train"]
+    assert train_d["scales_lr_mult"] == 1.0 and train_d["refine_every"] == 5  # schedules still scaled
+    res = CliRunner().invoke(cli, base + ["--preset", "demo", "--out", str(tmp_path / "e")])
+    assert res.exit_code == 0, res.output
+    train_e = yaml.safe_load((tmp_path / "e" / "config.yaml").read_text())["settings"]["train"]
+    assert train_e["scales_lr_mult"] == 1.0  # the demo preset turns the boost off
 
     full = FitConfig()
     assert scale_schedules_to_run(full) == {} and full.train.refine_every == 100
