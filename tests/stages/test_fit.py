@@ -105,7 +105,7 @@ def test_collapse_rollback_to_a_worse_snapshot_does_not_loop():
 
 def test_loss_check_judges_against_the_start_as_well_as_the_lowest_mean():
     """A run that collapses before it ever improved has its lowest mean near its start, so a
-    rise to 1.4x is below divergence_factor (1.5) x lowest; it is still worse than where the run
+    rise to 1.4x is below divergence_factor (2) x lowest; it is still worse than where the run
     began (START_LOSS_FACTOR 1.25) and must roll back. A run that improved and then gave a little
     back must not; divergence_factor 0 turns both tests off."""
     scene = synthetic_scene(num_views=8)
@@ -117,7 +117,7 @@ def test_loss_check_judges_against_the_start_as_well_as_the_lowest_mean():
         return [i for i, loss in enumerate(losses) if tr._diverging(loss)]
 
     never_improved = [1.0] * 50 + [1.4] * 200
-    assert TrainConfig().divergence_factor == 1.5 and fired(never_improved)
+    assert TrainConfig().divergence_factor > 1.4 and fired(never_improved)
     assert fired(never_improved)[0] > 60  # judged on the running mean, not one step
     assert not fired([1.0] * 50 + [0.5] * 100 + [0.7] * 200)
     assert not fired(never_improved, divergence_factor=0.0)
