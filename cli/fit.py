@@ -28,7 +28,7 @@ from .progress import training_progress
 @click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend. [default: auto]")
 @click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
 @click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: start at N/4 (N: 100000) and double "
-              "while held-out train views gain > 0.2 dB per doubling (3 stages: at most N), then prune. "
+              "while held-out train views gain > 0.5 dB per doubling (3 stages: at most N), then prune. "
               "[default: 100000]")
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import cv2
 import pytest
@@ -232,3 +233,14 @@ def test_tiny_planar_bench(scene, tmp_path):
     learned = res.rows[1]
     assert learned["num_primitives"] <= learned["derived"]["budget"]["budget"]
     assert learned["footprint_mb"] * 2**20 <= 64 * 2**10
+
+
+def test_auto_budget_result_keeps_the_whole_report(scene, tmp_path):
+    """A `--budget auto` run's result JSON carries the stages as fit.json has them, so the
+    report survives deleting the run folders (benchmarks/autobudget.py reads it from there)."""
+    cfg = BenchConfig(methods=[{"kernel": "gaussian", "budget": "auto"}],
+                      defaults={**BASE, "budget": None, "iters": 60}, metrics=("psnr",))
+    (row,) = run_bench([scene], cfg, tmp_path).rows
+    fit_report = json.loads((Path(row["run"]) / "fit.json").read_text())["auto_budget"]
+    assert row["auto_budget_report"] == fit_report and row["auto_budget"] == fit_report["chosen_budget"]
+    assert fit_report["stages"]

@@ -402,6 +402,8 @@ def run_one(
     })
     if summary.get("auto_budget"):
         row["auto_budget"] = summary["auto_budget"]["chosen_budget"]
+        # the whole report (stages, gains, pruning) too: the run folder may be deleted
+        row["auto_budget_report"] = summary["auto_budget"]
     _write_json(result_path, row)
     if on_event:
         on_event("done", {**info, "psnr": row["psnr"], "train_seconds": row["train_seconds"]})
