@@ -49,7 +49,7 @@ def bench(scene: Path, out: Path, budget: str, args) -> dict:
 def scene_row(scene: Path, out: Path, args) -> dict:
     """One seed on one scene: the auto run, the 4x run, and the targets."""
     auto = bench(scene, out, "auto", args)
-    report = auto.get("auto_budget_report")
+    report = auto.get("auto_budget_report") or earlier_report(scene.name, args)
     if report is None:  # results written before bench kept the report
         fit_json = Path(auto["run"]) / "fit.json"
         if not fit_json.is_file():
@@ -72,6 +72,19 @@ def scene_row(scene: Path, out: Path, args) -> dict:
         "default_budget_footprint_mb": default_mb,
     }
     return judge(row)
+
+
+def earlier_report(scene: str, args) -> dict | None:
+    """The auto-budget fields of this scene and seed from an earlier OUT/autobudget.json, for
+    results written before bench kept the report whose run folders have been deleted."""
+    path = Path(args.out) / "autobudget.json"
+    if not path.is_file():
+        return None
+    for row in json.loads(path.read_text()).get("scenes", []):
+        if row.get("scene") == scene and row.get("seed") == args.seed:
+            return {"chosen_budget": row["chosen_budget"], "stopped_because": row["stopped_because"],
+                    "stages": row["stages"], "comparison_seconds": row.get("comparison_seconds")}
+    return None
 
 
 def judge(row: dict) -> dict:
