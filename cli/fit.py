@@ -28,7 +28,8 @@ from .progress import training_progress
 @click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend. [default: auto]")
 @click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
 @click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: start at N/4 (N: 100000) and double "
-              "while held-out train views gain > 0.5 dB per doubling (3 stages: at most N), then prune. "
+              "while held-out train views gain > 0.5 dB per doubling (3 stages: at most N), then train a fresh model "
+              "at the chosen budget on every train view (as --budget N would) and prune. "
               "[default: 100000]")
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
@@ -123,7 +124,9 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         rep = json.loads((run / "fit.json").read_text()).get("auto_budget") or {}
         stages = ", ".join(f"{st['budget']:,}: {st['holdout_psnr']:.2f} dB" for st in rep.get("stages", []))
         prune = rep.get("prune") or {}
-        console.print(f"auto budget: chose {rep.get('chosen_budget')} ({stages}); "
+        refit = (f"; refit at it from the start on every train view (selection took "
+                 f"{rep['selection_seconds']:.0f} s)" if rep.get("refit") and rep.get("selection_seconds") else "")
+        console.print(f"auto budget: chose {rep.get('chosen_budget')} ({stages}){refit}; "
                       f"pruned {prune.get('pruned', 0)} primitives")
     console.print(f"wrote {run / 'model.pt'}")
     if stop["signal"] == signal.SIGINT:

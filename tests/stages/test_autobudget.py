@@ -161,3 +161,47 @@ def test_random_init_starts_at_a_quarter_of_the_budget(scene):
     assert build_model(sc, auto, budget=50).num_primitives == 50
     fixed = FitConfig(sh_degree=1, backend="torch", train=TrainConfig(budget=400, init="random", random_points=300))
     assert build_model(sc, fixed).num_primitives == 300
+
+
+def test_refit_is_the_fixed_run_at_the_chosen_budget(scene, tmp_path):
+    """Once chosen, --budget auto trains a fresh model at the chosen budget on every train view,
+    exactly as `--budget N` would: same parameters, the selection's time added to the run's."""
+    cfg = _cfg(threshold=100.0)  # chooses 50
+    cfg.auto_budget.prune_opacity, cfg.auto_budget.prune_weight = 0.0, -1.0  # prune nothing
+    auto_run = run_fit(scene, tmp_path / "auto", cfg)
+    rep = json.loads((auto_run / "fit.json").read_text())
+    assert rep["auto_budget"]["chosen_budget"] == 50 and rep["auto_budget"]["refit"]
+    fixed_cfg = _cfg(threshold=100.0)
+    fixed_cfg.auto_budget = None
+    fixed_cfg.train.budget = 50
+    fixed_run = run_fit(scene, tmp_path / "fixed", fixed_cfg)
+    fixed = json.loads((fixed_run / "fit.json").read_text())
+    assert rep["train_views"] == fixed["train_views"] == 7
+    assert rep["initial_psnr"] == pytest.approx(fixed["initial_psnr"])
+    a = torch.load(auto_run / "model.pt", weights_only=False)
+    b = torch.load(fixed_run / "model.pt", weights_only=False)
+    pa, pb = a["prims"], b["prims"]
+    assert set(pa) == set(pb)
+    for key in pa:
+        torch.testing.assert_close(pa[key], pb[key], rtol=0, atol=0)
+    sel = rep["auto_budget"]["selection_seconds"]
+    assert sel > 0 and rep["train_seconds"] == pytest.approx(fixed["train_seconds"] + sel, rel=0.5)
+
+
+def test_resume_inside_the_refit_gives_the_uninterrupted_result(scene, tmp_path):
+    cfg = _cfg(threshold=100.0)
+    whole = torch.load(run_fit(scene, tmp_path / "whole", cfg) / "model.pt", weights_only=False)
+    calls = {"n": 0}
+
+    def stop():  # the selection (stages 50 and 100, its control) ends before 70 checks
+        calls["n"] += 1
+        return calls["n"] >= 70
+
+    part = tmp_path / "part"
+    run_fit(scene, part, cfg, should_stop=stop)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)
+    assert state["auto_budget"]["refitting"] and 0 < state["trainer"]["it"] < 100
+    run_fit(scene, part, cfg, resume=True)
+    resumed = torch.load(part / "model.pt", weights_only=False)
+    for key in whole["prims"]:
+        torch.testing.assert_close(resumed["prims"][key], whole["prims"][key], rtol=1e-5, atol=1e-6)

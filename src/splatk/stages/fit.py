@@ -16,7 +16,7 @@ import math
 import shutil
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -327,21 +327,26 @@ def run_fit(
     if len(scene.train) == 0:
         raise InputError(scene_path, "no training images found")
     auto, holdout = None, []
+    all_train = list(scene.train)  # the refit of --budget auto trains on every one, in this order
     if cfg.auto_budget is not None:
         try:
             scene.train, holdout = split_holdout(scene.train, cfg.auto_budget.holdout_every)
         except ValueError as e:
             raise InputError(scene_path, str(e), "use a number for --budget") from None
         auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.refine_stop)
-    torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
-    model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
-    trainer = Trainer(scene, model, cfg.train)
+    if resume and auto is not None and state.get("auto_budget") is not None:
+        auto.load_state_dict(state["auto_budget"])
+    if auto is not None and auto.refitting:  # resuming the refit: a fixed run at the chosen budget
+        trainer = _refit_trainer(scene, all_train, cfg, auto.chosen)
+    else:
+        torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
+        model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
+        trainer = Trainer(scene, model, cfg.train)
     ckpt_path = out / "checkpoints" / "last.pt"
     if resume:
-        if auto is not None and state.get("auto_budget") is not None:
-            auto.load_state_dict(state["auto_budget"])
-            if auto.holdout_returned:  # the optimiser's view list (and its queue) included them
-                auto.return_holdout(trainer, holdout)
+        if auto is not None and auto.holdout_returned and not auto.refitting:
+            # the optimiser's view list (and its queue) included them
+            auto.return_holdout(trainer, holdout)
         trainer.load_state_dict(state["trainer"])
         initial_psnr = state.get("initial_psnr")
         del state
@@ -363,9 +368,12 @@ def run_fit(
                   "start_it": trainer.it, "backend": cfg.train.backend})
 
     saved_it = {"it": trainer.it if resume else None}
+    # the trainer whose model is saved: --budget auto's refit replaces the selection's
+    current = {"trainer": trainer, "initial_psnr": initial_psnr}
 
     def checkpoint(tr: Trainer) -> None:
-        state = {"trainer": tr.state_dict(), "spec": spec, "meta": meta, "initial_psnr": initial_psnr,
+        state = {"trainer": tr.state_dict(), "spec": spec, "meta": meta,
+                 "initial_psnr": current["initial_psnr"],
                  "auto_budget": auto.state_dict() if auto is not None else None}
         _save(lambda: atomic_torch_save(state, ckpt_path), ckpt_path, out, saved_it["it"])
         saved_it["it"] = tr.it
@@ -383,23 +391,35 @@ def run_fit(
 
     wall0 = time.time()
     interrupted = False
+    def make_refit_trainer(budget: int) -> Trainer:
+        tr = _refit_trainer(scene, all_train, cfg, budget)
+        # the final model descends from this one, so its PSNR is the run's initial PSNR
+        current["trainer"] = tr
+        current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, cfg.train.backend)
+        return tr
+
     try:
         try:
             if auto is not None:
-                auto.run(trainer, holdout, step, should_stop, checkpoint, cfg.checkpoint_every)
+                auto.run(trainer, holdout, step, should_stop, checkpoint, cfg.checkpoint_every,
+                         make_refit_trainer=make_refit_trainer)
             else:
                 trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
         except KeyboardInterrupt:
             interrupted = True
+        trainer = current["trainer"]
         checkpoint(trainer)
     finally:
         log.close()
     if interrupted:
         raise KeyboardInterrupt
     _save(lambda: save_model(trainer.model, out / "model.pt", spec, meta), out / "model.pt", out, saved_it["it"])
+    train_seconds = trainer.elapsed
+    if auto is not None and auto.refitting:  # the selection is part of what the run cost
+        train_seconds += auto.selection_seconds or 0.0
     summary = {
         "iterations": trainer.it,
-        "train_seconds": round(trainer.elapsed, 2),
+        "train_seconds": round(train_seconds, 2),
         "wall_seconds_this_session": round(time.time() - wall0, 2),
         "num_primitives": trainer.model.num_primitives,
         "footprint_mb": trainer.model.footprint_bytes() / 2**20,
@@ -408,7 +428,7 @@ def run_fit(
         "color": cfg.color,
         "backend": cfg.train.backend,
         "events": trainer.events,
-        "initial_psnr": initial_psnr,
+        "initial_psnr": current["initial_psnr"],
         "view_stride": cfg.view_stride,
         "train_views": len(trainer.scene.train),
     }
@@ -416,6 +436,15 @@ def run_fit(
         summary["auto_budget"] = auto.report(holdout)
     (out / "fit.json").write_text(json.dumps(summary, indent=2))
     return out
+
+
+def _refit_trainer(scene, all_train: list, cfg: FitConfig, budget: int) -> Trainer:
+    """The trainer of a fixed-budget run at ``budget`` on every train view: what `splatk fit
+    --budget N` builds (same seed, init rule and schedules), for --budget auto's refit."""
+    scene.train = list(all_train)
+    fixed = replace(cfg, auto_budget=None, train=replace(cfg.train, budget=budget))
+    torch.manual_seed(fixed.train.seed)
+    return Trainer(scene, build_model(scene, fixed), fixed.train)
 
 
 def _save(write: Callable[[], object], path: Path, out: Path, kept_it: int | None) -> None:
