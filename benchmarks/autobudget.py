@@ -2,7 +2,7 @@
 
     python benchmarks/autobudget.py [--scenes lego,fox,cup,bonsai] [--data ../shared/data]
         [--out benchmarks/results/autobudget] [--iters 4000] [--downscale 4] [--threads 2] [--preset YAML]
-        [--seeds 0,1]
+        [--seeds 0,1] [--auto-preset YAML]
 
 Per scene, through `splatk bench` (so runs are resumable and each writes its own JSON):
 
@@ -33,17 +33,31 @@ MEMORY_SHARE = 0.5
 
 def bench(scene: Path, out: Path, budget: str, args) -> dict:
     ds = max(1.0, args.downscale / 2) if scene.name == "lego" else args.downscale
-    cmd = ["splatk", "bench", str(scene), "--out", str(out), "--kernel", "gaussian", "--budget", budget,
+    auto_preset = budget == "auto" and args.auto_preset
+    method = ["--preset", args.auto_preset] if auto_preset else ["--kernel", "gaussian", "--budget", budget]
+    cmd = ["splatk", "bench", str(scene), "--out", str(out), *method,
            "--iters", str(args.iters), "--downscale", str(ds), "--threads", str(args.threads),
            "--seed", str(args.seed), "--metrics", "psnr,ssim", "-q"] + (["--preset", args.preset] if args.preset else [])
     print("$", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True)
     tag = "bauto" if budget == "auto" else f"b{budget}"
-    (path,) = glob.glob(str(out / "results" / f"{scene.name}__gaussian-sh-{tag}*.json"))
+    pattern = f"{scene.name}__{auto_preset_method(args.auto_preset)}.json" if auto_preset else \
+        f"{scene.name}__gaussian-sh-{tag}*.json"
+    (path,) = glob.glob(str(out / "results" / pattern))
     row = json.loads(Path(path).read_text())
     if row.get("status") != "ok":
         raise SystemExit(f"{path}: run {row.get('status')}: {row.get('error')}")
     return row
+
+
+def auto_preset_method(path: str) -> str:
+    """The name of the one method in an --auto-preset YAML (its result file's suffix)."""
+    import yaml
+
+    methods = yaml.safe_load(Path(path).read_text()).get("methods") or []
+    if len(methods) != 1 or "name" not in methods[0] or methods[0].get("budget") != "auto":
+        raise SystemExit(f"{path}: --auto-preset needs exactly one named method with budget: auto")
+    return methods[0]["name"]
 
 
 def scene_row(scene: Path, out: Path, args) -> dict:
@@ -130,6 +144,9 @@ def main() -> None:
                     help="comma-separated seeds; runs go to OUT/seedN, and with more than one seed the "
                          "table adds each scene's mean over them")
     ap.add_argument("--preset", help="bench YAML whose defaults every run gets (e.g. benchmarks/split_shrink.yaml)")
+    ap.add_argument("--auto-preset", help="bench YAML with the one auto-budget method to run instead of the "
+                                          "default one (e.g. benchmarks/autobudget_short_runs.yaml); the 4x "
+                                          "runs stay plain Gaussian runs")
     args = ap.parse_args()
     out = Path(args.out)
     seeds = [int(x) for x in args.seeds.split(",")]

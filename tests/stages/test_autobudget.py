@@ -205,3 +205,45 @@ def test_resume_inside_the_refit_gives_the_uninterrupted_result(scene, tmp_path)
     resumed = torch.load(part / "model.pt", weights_only=False)
     for key in whole["prims"]:
         torch.testing.assert_close(resumed["prims"][key], whole["prims"][key], rtol=1e-5, atol=1e-6)
+
+
+def test_short_runs_selection_trains_each_budget_from_the_start(scene, tmp_path):
+    cfg = _cfg(threshold=-100.0)
+    cfg.auto_budget.selection = "short_runs"
+    rep = json.loads((run_fit(scene, tmp_path / "run", cfg) / "fit.json").read_text())
+    ab = rep["auto_budget"]
+    assert ab["selection"] == "short_runs" and ab["refit"]
+    # base 400, stages of 0.2 -> four budgets, each a complete run of 20 iterations
+    assert [s["budget"] for s in ab["stages"]] == [50, 100, 200, 400]
+    assert all(s["iteration"] == 20 for s in ab["stages"])
+    assert ab["selection_iterations"] == 80
+    st = ab["stages"]
+    for prev, cur in zip(st, st[1:]):
+        assert cur["gain_db"] == pytest.approx(cur["holdout_psnr"] - prev["holdout_psnr"])
+    assert ab["chosen_budget"] == 400 and rep["iterations"] == 100
+    assert rep["train_seconds"] > ab["selection_seconds"] > 0
+
+
+def test_resume_inside_a_short_run_gives_the_uninterrupted_result(scene, tmp_path):
+    cfg = _cfg(threshold=100.0)  # 50, then 100: gains < 100 dB, so 50 is refit
+    cfg.auto_budget.selection = "short_runs"
+    whole_dir = run_fit(scene, tmp_path / "whole", cfg)
+    whole = json.loads((whole_dir / "fit.json").read_text())["auto_budget"]
+    steps = {"n": 0}
+
+    def count(info):
+        steps["n"] += 1
+
+    part = tmp_path / "part"  # stopped 8 steps into the second short run (each takes 20)
+    run_fit(scene, part, cfg, on_step=count, should_stop=lambda: steps["n"] >= 28)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)
+    assert state["auto_budget"]["current_short"] == 100 and 0 < state["trainer"]["it"] < 20
+    run_fit(scene, part, cfg, resume=True)
+    rep = json.loads((part / "fit.json").read_text())["auto_budget"]
+    assert rep["chosen_budget"] == whole["chosen_budget"] == 50
+    for a, b in zip(rep["stages"], whole["stages"]):
+        assert a["holdout_psnr"] == pytest.approx(b["holdout_psnr"], abs=1e-3)
+    a = torch.load(part / "model.pt", weights_only=False)["prims"]
+    b = torch.load(whole_dir / "model.pt", weights_only=False)["prims"]
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6)

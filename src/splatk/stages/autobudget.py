@@ -68,7 +68,11 @@ class AutoBudgetConfig:
     stage_share: float = 0.25
     #: every n-th train view is held back from the optimiser while choosing (>= 2)
     holdout_every: int = 8
-    #: judge a doubling against a control trained through the same stage at the old cap
+    #: how budgets are compared: "stages" (one run grown stage by stage, judged mid-run, see
+    #: ``paired``) or "short_runs" (a complete run of stage_share x the iterations per budget,
+    #: from the start, judged at its end; needs ``refit``)
+    selection: str = "stages"
+    #: stages: judge a doubling against a control trained through the same stage at the old cap
     paired: bool = True
     #: once the budget is chosen, train a fresh model at it from the start on every train view
     #: (as `--budget N` would); False: train the selection's model on for the rest of the run
@@ -186,6 +190,8 @@ class AutoBudget:
         self.selection_seconds: float | None = None
         self.selection_iterations: int | None = None
         self.selection_events: list[dict] = []
+        # short_runs: the budget whose short run is training (None between runs)
+        self.current_short: int | None = None
 
     @property
     def start_budget(self) -> int:
@@ -199,7 +205,7 @@ class AutoBudget:
                 "comparison_seconds": self.comparison_seconds, "refitting": self.refitting,
                 "selection_seconds": self.selection_seconds,
                 "selection_iterations": self.selection_iterations,
-                "selection_events": list(self.selection_events)}
+                "selection_events": list(self.selection_events), "current_short": self.current_short}
 
     def load_state_dict(self, sd: dict) -> None:
         self.stages = list(sd["stages"])
@@ -216,6 +222,7 @@ class AutoBudget:
         self.selection_seconds = sd.get("selection_seconds")
         self.selection_iterations = sd.get("selection_iterations")
         self.selection_events = list(sd.get("selection_events", []))
+        self.current_short = sd.get("current_short")
 
     def return_holdout(self, trainer: Trainer, holdout: list[Camera]) -> None:
         """Hand the held-out views to the optimiser (once the budget is chosen)."""
@@ -232,12 +239,22 @@ class AutoBudget:
         on_checkpoint: Callable[[Trainer], None] | None = None,
         checkpoint_every: int = 1000,
         make_refit_trainer: Callable[[int], Trainer] | None = None,
+        make_short_trainer: Callable[[int], Trainer] | None = None,
     ) -> Trainer:
         """Choose the budget, train at it (with ``refit``: a fresh trainer from
         ``make_refit_trainer(chosen)``, else the selection's own for the rest of the run),
         prune. Returns the trainer that holds the final model, early (state kept for
         ``--resume``) when ``should_stop`` says so."""
         stopped = lambda: bool(should_stop and should_stop())  # noqa: E731
+        if self.cfg.selection == "short_runs":
+            if not self.cfg.refit or make_short_trainer is None:
+                raise ValueError("selection short_runs needs refit and make_short_trainer")
+            trainer = self._short_runs(trainer, holdout, make_short_trainer, on_step, should_stop,
+                                       on_checkpoint, checkpoint_every)
+            if self.chosen is None:  # stopped
+                return trainer
+        elif self.cfg.selection != "stages":
+            raise ValueError(f"unknown selection {self.cfg.selection!r} (stages or short_runs)")
         mcmc = trainer.strategy.cfg
         refine_every = mcmc.refine_every
         if self.chosen is None:
@@ -262,9 +279,10 @@ class AutoBudget:
         if self.cfg.refit and not self.refitting:
             if make_refit_trainer is None:
                 raise ValueError("refit needs make_refit_trainer")
-            self.selection_seconds = trainer.elapsed + self.comparison_seconds
-            self.selection_iterations = trainer.it
-            self.selection_events = list(trainer.events)
+            if self.cfg.selection == "stages":
+                self.selection_seconds = trainer.elapsed + self.comparison_seconds
+                self.selection_iterations = trainer.it
+                self.selection_events = list(trainer.events)
             trainer = make_refit_trainer(self.chosen)
             self.refitting = True
             if on_checkpoint:  # a resume from here on rebuilds the refit trainer
@@ -278,6 +296,40 @@ class AutoBudget:
             return trainer
         if self.prune_report is None:
             self.prune_report = self.prune(trainer, holdout)
+        return trainer
+
+    def _short_runs(self, trainer: Trainer, holdout, make_short_trainer, on_step, should_stop,
+                    on_checkpoint, checkpoint_every) -> Trainer:
+        """One complete short run per budget, from the start; keep doubling while the held-out
+        PSNR at the end of the run gains more than the threshold over the previous budget's."""
+        stopped = lambda: bool(should_stop and should_stop())  # noqa: E731
+        bg, backend = trainer.background.cpu(), trainer.cfg.backend
+        while self.chosen is None:
+            s = len(self.stages)
+            budget = self.budgets[s]
+            if self.current_short != budget:
+                self.current_short = budget
+                trainer = make_short_trainer(budget)
+                self.refine_every_used = trainer.strategy.cfg.refine_every
+                if on_checkpoint:  # a resume from here on rebuilds this run's trainer
+                    on_checkpoint(trainer)
+            trainer.run(on_step, should_stop, on_checkpoint, checkpoint_every)
+            if stopped() and not trainer.done():
+                return trainer
+            value = render_psnr(trainer.model, holdout, bg, backend)
+            prev = self.stages[-1] if self.stages else None
+            gain = None if prev is None else value - prev["holdout_psnr"]
+            num = trainer.model.num_primitives
+            self.stages.append({"budget": budget, "num_primitives": num, "iteration": trainer.it,
+                                "holdout_psnr": value, "gain_db": gain,
+                                "seconds": round(trainer.elapsed, 3)})
+            self.selection_seconds = (self.selection_seconds or 0.0) + trainer.elapsed
+            self.selection_iterations = (self.selection_iterations or 0) + trainer.it
+            self.selection_events += trainer.events
+            self.current_short = None
+            if not self._stop_growing(prev, num, gain, s) and s == len(self.budgets) - 1:
+                self.chosen = budget
+                self.reason = "largest budget tried (max_factor / stage count)"
         return trainer
 
     def _unpaired_stage(self, trainer: Trainer, holdout, s: int, train_stage) -> bool:
@@ -345,7 +397,8 @@ class AutoBudget:
             return True
         if gain is not None and not (gain > self.cfg.threshold_db):  # NaN counts as no gain
             self.chosen = self.budgets[s - 1]
-            vs = "its control" if self.cfg.paired else "the previous stage"
+            vs = ("the previous budget's short run" if self.cfg.selection == "short_runs" else
+                  "its control" if self.cfg.paired else "the previous stage")
             self.reason = (f"doubling {self.budgets[s - 1]} -> {budget} gained {gain:.3f} dB over {vs} "
                            f"<= {self.cfg.threshold_db} dB; back to the {self.chosen} budget")
             return True
@@ -417,6 +470,7 @@ class AutoBudget:
             "holdout_returned_to_training": self.holdout_returned or self.refitting,
             "stages": self.stages,
             "stopped_because": self.reason,
+            "selection": self.cfg.selection,
             "paired": self.cfg.paired,
             "comparison_seconds": round(self.comparison_seconds, 3),
             "refit": self.refitting,

@@ -31,6 +31,7 @@ from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
 from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
+from ..train.mcmc import MCMCConfig
 from ..train.trainer import StepInfo, TrainConfig, Trainer
 from .autobudget import AutoBudget, AutoBudgetConfig, render_psnr, split_holdout
 
@@ -333,18 +334,25 @@ def run_fit(
             scene.train, holdout = split_holdout(scene.train, cfg.auto_budget.holdout_every)
         except ValueError as e:
             raise InputError(scene_path, str(e), "use a number for --budget") from None
+        sel = cfg.auto_budget.selection
+        if sel not in ("stages", "short_runs") or (sel == "short_runs" and not cfg.auto_budget.refit):
+            raise InputError(scene_path, f"auto budget selection {sel!r} with refit {cfg.auto_budget.refit}",
+                             "use selection stages, or short_runs with refit true")
         auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.refine_stop)
+    selection_train = list(scene.train)  # --budget auto's optimiser views while choosing
     if resume and auto is not None and state.get("auto_budget") is not None:
         auto.load_state_dict(state["auto_budget"])
     if auto is not None and auto.refitting:  # resuming the refit: a fixed run at the chosen budget
         trainer = _refit_trainer(scene, all_train, cfg, auto.chosen)
+    elif auto is not None and auto.current_short is not None:  # resuming a short selection run
+        trainer = _short_run_trainer(scene, selection_train, cfg, auto.current_short)
     else:
         torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
         model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
         trainer = Trainer(scene, model, cfg.train)
     ckpt_path = out / "checkpoints" / "last.pt"
     if resume:
-        if auto is not None and auto.holdout_returned and not auto.refitting:
+        if auto is not None and auto.holdout_returned and not auto.refitting and auto.current_short is None:
             # the optimiser's view list (and its queue) included them
             auto.return_holdout(trainer, holdout)
         trainer.load_state_dict(state["trainer"])
@@ -398,11 +406,16 @@ def run_fit(
         current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, cfg.train.backend)
         return tr
 
+    def make_short_trainer(budget: int) -> Trainer:
+        current["trainer"] = _short_run_trainer(scene, selection_train, cfg, budget)
+        return current["trainer"]
+
     try:
         try:
             if auto is not None:
                 auto.run(trainer, holdout, step, should_stop, checkpoint, cfg.checkpoint_every,
-                         make_refit_trainer=make_refit_trainer)
+                         make_refit_trainer=make_refit_trainer,
+                         make_short_trainer=make_short_trainer)
             else:
                 trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
         except KeyboardInterrupt:
@@ -445,6 +458,25 @@ def _refit_trainer(scene, all_train: list, cfg: FitConfig, budget: int) -> Train
     fixed = replace(cfg, auto_budget=None, train=replace(cfg.train, budget=budget))
     torch.manual_seed(fixed.train.seed)
     return Trainer(scene, build_model(scene, fixed), fixed.train)
+
+
+def _short_run_trainer(scene, views: list, cfg: FitConfig, budget: int) -> Trainer:
+    """--budget auto's short selection run at ``budget``: a fixed-budget run on ``views`` (the
+    held-out ones left out) for ``stage_share`` of the iterations (or of the time budget), its
+    progress-based schedules complete, MCMC refining often enough to reach the budget from the
+    init in the first half of it."""
+    t, share = cfg.train, cfg.auto_budget.stage_share
+    iters = t.iters if t.time_budget else max(1, round(share * t.iters))
+    time_budget = share * t.time_budget if t.time_budget else None
+    refine_every = t.refine_every
+    if not t.time_budget:
+        growth_steps = math.ceil(math.log(4.0) / math.log(MCMCConfig.growth))  # a quarter -> all
+        refine_every = max(1, min(refine_every, int(iters / 2 / growth_steps)))
+    short = replace(cfg, auto_budget=None, train=replace(t, budget=budget, iters=iters, time_budget=time_budget,
+                                                         refine_every=refine_every))
+    scene.train = list(views)
+    torch.manual_seed(short.train.seed)
+    return Trainer(scene, build_model(scene, short), short.train)
 
 
 def _save(write: Callable[[], object], path: Path, out: Path, kept_it: int | None) -> None:
