@@ -55,6 +55,13 @@ def make_transparent(tr: Trainer) -> None:
         tr.model.prims["opacity_logits"].data.fill_(-30.0)
 
 
+def make_vanished(tr: Trainer) -> None:
+    """Every primitive opaque but shrunk far below a pixel: no NaN, and the projection's
+    low-pass still draws each one as a faint dot, so the image is not empty."""
+    with torch.no_grad():
+        tr.model.prims["log_scales"].data.fill_(-30.0)
+
+
 def loss_rollbacks(tr: Trainer) -> list[dict]:
     return [e for e in tr.events if e["event"] == "loss_rollback"]
 
@@ -67,10 +74,12 @@ def make_white(tr: Trainer) -> None:
 
 
 @pytest.mark.parametrize("collapse, reason", [(make_transparent, "every primitive is transparent"),
+                                              (make_vanished, "vanishingly small"),
                                               (make_white, "loss diverged")])
 def test_collapse_without_nan_rolls_back(collapse, reason):
     """A run whose image collapses mid-run raises no NaN: every primitive made transparent (the
-    transparency check) or every colour made white, the background (the loss check). It rolls
+    transparency check), every scale shrunk to nothing (the same check: invisible) or every colour
+    made white, the background (the loss check). It rolls
     back to the last healthy snapshot with a smaller step, and ends where a healthy run ends. A
     healthy run of the same settings never trips either check."""
     scene = synthetic_scene(num_views=8)

@@ -7,7 +7,7 @@ optimiser moments, RNGs, density-control statistics, elapsed time - round-trips 
 rollback all use. A rollback (restore the last healthy snapshot, halve every step size) follows
 a non-finite loss or parameter, and a collapse without a NaN: the loss's running mean rising
 past ``divergence_factor`` x its lowest value or past START_LOSS_FACTOR x its first value, or
-every primitive turning transparent.
+every primitive turning invisible (transparent, or shrunk to a vanishing size).
 """
 from __future__ import annotations
 
@@ -42,6 +42,14 @@ HEALTHY_LOSS_FACTOR = 1.25
 #: LRs and LR x10, 1000 iterations: lego learned k=2 9.65 -> 24.46 dB, fox Gaussian 11.58 -> 16.81
 #: dB with this check; benchmarks/results/stability9)
 START_LOSS_FACTOR = 1.25
+#: a primitive whose largest scale is below this share of the scene's extent draws nothing a
+#: camera of the scene resolves (lego at 1/4 resolution: a pixel is ~3e-3 of the extent), and a
+#: model of only such primitives (and transparent ones) is rolled back. With short-run LRs and LR
+#: x10, lego's learned k=4 shrank every scale to ~1e-6 of the extent while opaque and ended at
+#: 11.1 dB, drawn only by the projection's low-pass; caught at 1e-4 it rolled back twice (at
+#: iterations 92 and 81, to the init) and ended at 27.0 dB. At 1e-5 the snapshots it went back
+#: to were already shrinking, and six rollbacks ended at 11.9 dB.
+VANISHED_SCALE = 1e-4
 
 
 @dataclass
@@ -138,8 +146,8 @@ class Trainer:
         # the cpu backend also fuses the D-SSIM loss (backends.fused_cpu; same value)
         self.fused = use_fused(resolve_backend(config.backend, self.device), self.device)
         self._snapshot = None
-        # False while the snapshot a rollback would restore is itself all transparent
-        self._transparent_check = True
+        # False while the snapshot a rollback would restore is itself all invisible
+        self._invisible_check = True
 
     # ---- optimisers and schedules ------------------------------------------------------
     def _build_optimizers(self) -> None:
@@ -208,16 +216,17 @@ class Trainer:
             elif self._diverging(float(loss.detach())):
                 event = self._rollback(f"loss diverged (running mean {self.loss_mean:.4g}, lowest "
                                        f"{self.best_loss_mean:.4g})", kind="loss_rollback")
-            elif self._all_transparent():
+            elif self._all_invisible():
                 event = self._rollback("every primitive is transparent (opacity <= "
-                                       f"{self.strategy.cfg.min_opacity:g})", kind="loss_rollback")
+                                       f"{self.strategy.cfg.min_opacity:g}) or vanishingly small "
+                                       f"(scales < {VANISHED_SCALE:g} x the scene extent)", kind="loss_rollback")
             else:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
                 # a snapshot taken while the loss is already climbing would be rolled back to
                 if (self.it % self.cfg.snapshot_every == 0 and self._loss_healthy()
-                        and not self._model_transparent()):
+                        and not self._model_invisible()):
                     self._snapshot = self.state_dict()
-                    self._transparent_check = True
+                    self._invisible_check = True
         with torch.no_grad():
             mse = ((out.image.detach().clamp(0, 1) - target) ** 2).mean().item()
         self.elapsed += time.perf_counter() - t0
@@ -254,20 +263,26 @@ class Trainer:
         return f > 0 and (self.loss_mean > f * self.best_loss_mean
                           or self.loss_mean > START_LOSS_FACTOR * self.start_loss_mean)
 
-    def _all_transparent(self) -> bool:
-        """True when no primitive is above MCMC's dead-opacity line: relocation and growth sample
-        live primitives, so such a model can never come back, and its loss need not rise enough
-        to trip :meth:`_diverging` (lego, Beta, short-run LRs and LR x10: the scales and
-        opacities shrank to nothing by iteration 60, and the empty white image's loss, 0.215,
-        stayed below the random init's 0.33 and within 1.2x of the run's first mean)."""
-        if self.cfg.divergence_factor <= 0 or not self._transparent_check:
+    def _all_invisible(self) -> bool:
+        """True when no primitive is both above MCMC's dead-opacity line and larger than
+        VANISHED_SCALE x the extent. Relocation and growth sample live primitives, so a fully
+        transparent model can never come back, and its loss need not rise enough to trip
+        :meth:`_diverging` (lego, Beta, short-run LRs and LR x10: the scales and opacities shrank
+        to nothing by iteration 60, and the empty white image's loss, 0.215, stayed below the
+        random init's 0.33 and within 1.2x of the run's first mean). Vanished scales get no
+        useful gradient either: the low-pass draws every such primitive as the same dot."""
+        if self.cfg.divergence_factor <= 0 or not self._invisible_check:
             return False
-        return self._model_transparent()
+        return self._model_invisible()
 
-    def _model_transparent(self) -> bool:
+    def _model_invisible(self) -> bool:
         logits = self.model.prims["opacity_logits"].detach()
+        if logits.numel() == 0:
+            return False
         dead = math.log(self.strategy.cfg.min_opacity / (1.0 - self.strategy.cfg.min_opacity))
-        return logits.numel() > 0 and bool(logits.max() <= dead)
+        log_size = self.model.prims["log_scales"].detach().max(dim=-1).values
+        visible = (logits > dead) & (log_size > math.log(VANISHED_SCALE * self.extent))
+        return not bool(visible.any())
 
     def _loss_healthy(self) -> bool:
         # near the lowest mean, and no worse than where the run started: a snapshot of a run
@@ -296,8 +311,8 @@ class Trainer:
         # snapshot can already be worse than the lowest mean (the mean lags the loss), and
         # judging it against that would roll back to it again and again at ever smaller steps
         self.loss_mean, self.best_loss_mean, self.start_loss_mean, self._steps_since_reset = None, None, None, 0
-        # a snapshot that is itself all transparent cannot be helped by rolling back to it again
-        self._transparent_check = not self._model_transparent()
+        # a snapshot that is itself all invisible cannot be helped by rolling back to it again
+        self._invisible_check = not self._model_invisible()
         msg = f"iteration {it}: {reason}; rolled back to iteration {self.it}, step size x{self.lr_scale:g}"
         self.events.append({"iteration": it, "event": kind, "message": msg})
         return msg
