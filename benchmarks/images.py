@@ -11,7 +11,9 @@ torch.set_num_threads(1), up to --jobs at a time. Prints a table of PSNR / SSIM 
 (learned >= gaussian + 0.5 dB and >= gabor on average); writes every fit's metrics to
 benchmarks/results/images.json. ``--kernels ...,learned-samecount`` adds the learned kernel at the
 Gaussian's primitive count (so with more bytes): what its shape is worth per primitive, before
-its latent floats are paid for.
+its latent floats are paid for. ``learned-shapesK`` (e.g. ``learned-shapes64``) is the learned kernel
+with a palette of K shared shapes and a one-byte index per splat (`splatk image --shapes K`;
+`splatk image` defaults to 64). ``learned`` here is always a latent per splat (``--shapes 0``).
 """
 from __future__ import annotations
 
@@ -38,13 +40,15 @@ from pathlib import Path
 from splatk.stages.image_fit import ImageFitConfig, run_image_fit
 from splatk.models.image2d import floats_per_primitive, network_bytes, num_primitives
 a = json.loads(sys.argv[1])
-kernel, budget = a["kernel"], a["budget"]
+kernel, budget, shapes = a["kernel"], a["budget"], 0
+if kernel.startswith("learned-shapes"):  # learned-shapesK: a palette of K shapes
+    kernel, shapes = "learned", int(kernel[len("learned-shapes"):])
 if kernel == "learned-samecount":  # the Gaussian's primitive count, so more bytes: the shape's own gain
     kernel = "learned"
     budget = (num_primitives("gaussian", budget) * 4 * floats_per_primitive("learned", a["latent_dim"])
               + network_bytes("learned", a["latent_dim"]))
 cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget, iters=a["iters"], seed=a["seed"],
-                     downscale=a["downscale"], latent_dim=a["latent_dim"])
+                     downscale=a["downscale"], latent_dim=a["latent_dim"], shapes=shapes)
 p = run_image_fit(Path(a["photo"]), Path(a["out"]), cfg, overwrite=True)
 print(p.read_text())
 """
@@ -99,13 +103,13 @@ def main() -> None:
                 r.pop("out", None)
                 rows.append(r)
                 tag = "ERROR" if "error" in r else f"{r['psnr']:.2f} dB {r['seconds']:.0f} s"
-                print(f"  {Path(r['photo']).stem} {r['kernel']:8s} {r['budget']:6d} B: {tag}", flush=True)
+                print(f"  {Path(r['photo']).stem} {r['kernel']:16s} {r['budget']:6d} B: {tag}", flush=True)
     wall = time.time() - t0
     ok = [r for r in rows if "error" not in r]
     print(f"\n{len(photos)} photos, downscale {a.downscale}, {a.iters} iterations, seed {a.seed}, "
           f"learned latent {a.latent_dim}, "
           f"wall {wall / 60:.1f} min\n")
-    print(f"{'budget':>7} {'kernel':9} {'prims':>6} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'s/fit':>6}")
+    print(f"{'budget':>7} {'kernel':16} {'prims':>6} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'s/fit':>6}")
     summary = {}
     for b in budgets:
         for k in kernels:
@@ -117,12 +121,16 @@ def main() -> None:
                  "bytes": sel[0]["bytes"],
                  "num_primitives": sel[0]["num_primitives"], "n": len(sel)}
             summary[f"{b}/{k}"] = s
-            print(f"{b:7d} {k:9} {s['num_primitives']:6d} {s['psnr']:6.2f} {s['ssim']:6.3f} "
+            print(f"{b:7d} {k:16} {s['num_primitives']:6d} {s['psnr']:6.2f} {s['ssim']:6.3f} "
                   f"{s['lpips']:6.3f} {s['seconds']:6.0f}")
         g, gb, lr = (summary.get(f"{b}/{k}") for k in ("gaussian", "gabor", "learned"))
         if g and gb and lr:
             print(f"{'':7} learned - gaussian {lr['psnr'] - g['psnr']:+.2f} dB (target +0.50), "
                   f"learned - gabor {lr['psnr'] - gb['psnr']:+.2f} dB (target >= 0)")
+        for k in kernels:
+            pal = summary.get(f"{b}/{k}")
+            if k.startswith("learned-shapes") and g and pal:
+                print(f"{'':7} {k} - gaussian {pal['psnr'] - g['psnr']:+.2f} dB")
         same = summary.get(f"{b}/learned-samecount")
         if g and same:
             print(f"{'':7} learned at the gaussian's count ({same['bytes'] / b:.2f}x the bytes) - gaussian "

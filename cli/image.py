@@ -34,14 +34,17 @@ _D = ImageFitConfig()
 @click.option("--latent-dim", type=int, default=_D.latent_dim, show_default=True,
               help="Learned kernel: floats of each primitive's latent (fewer = more primitives per byte; "
                    "0 = one shape shared by all splats).")
+@click.option("--shapes", type=click.IntRange(0, 256), default=_D.shapes, show_default=True,
+              help="Learned kernel: a palette of this many shared shapes, one byte per splat naming its "
+                   "shape, instead of a latent per splat (0 = a latent per splat).")
 @click.option("--exact", is_flag=True, help="Learned kernel: run the decoder per pixel (slow reference).")
 @click.option("--backend", type=click.Choice(BACKENDS), default=_D.backend, show_default=True,
               help="Renderer: native cpu (OpenMP), torch (reference, any device), or auto (cpu when it builds).")
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing result in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, exact,
-            backend, no_lpips, overwrite, quiet):
+def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
+            exact, backend, no_lpips, overwrite, quiet):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
     The image is the plain sum of the splats (GaussianImage style); see
@@ -59,7 +62,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
         raise click.BadParameter(str(e), param_hint="--budget-bytes") from None
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
-                         backend=backend, lpips=not no_lpips)
+                         shapes=shapes, backend=backend, lpips=not no_lpips)
     console = Console(stderr=True)
     progress = None if quiet else Progress(
         TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),
@@ -86,6 +89,8 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
     m = json.loads(path.read_text())
     lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
     console.print(f"{kernel}: {m['num_primitives']} primitives, {m['bytes']} bytes"
-                  + (f" (of which {m['network_bytes']} the shared decoder)" if m["network_bytes"] else "")
+                  + (f" (of which {m['network_bytes']} the shared decoder"
+                     + (f" and its {m['shapes']}-shape palette" if m["shapes"] else "") + ")"
+                     if m["network_bytes"] else "")
                   + f", PSNR {m['psnr']:.2f}, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['seconds']:.1f} s")
     click.echo(f"wrote {path}")

@@ -12,8 +12,8 @@ from click.testing import CliRunner
 
 from splatk.backends.planar_torch import bilinear
 from splatk.errors import InputError
-from splatk.models.image2d import (KERNELS, LATENT_DIM, PlanarDecoder, Splats2D, decoder_floats,
-                                   floats_per_primitive, num_primitives)
+from splatk.models.image2d import (KERNELS, LATENT_DIM, PlanarDecoder, Splats2D, bytes_per_primitive,
+                                   decoder_floats, floats_per_primitive, kmeans, num_primitives)
 from splatk.stages.image_fit import ImageFitConfig, fit_image
 
 
@@ -131,9 +131,13 @@ def test_cli_writes_metrics(tmp_path):
     for key in ("psnr", "ssim", "lpips", "bytes", "num_primitives", "kernel", "iterations", "seconds"):
         assert key in m
     assert m["kernel"] == "learned" and m["iterations"] == 5
-    assert m["num_primitives"] == (2000 - 4 * decoder_floats()) // (4 * (8 + LATENT_DIM)) and m["bytes"] <= 2000
+    # the default learned kernel draws from a palette: decoder and palette paid once, a byte per splat
+    shapes = ImageFitConfig().shapes
+    assert m["shapes"] == shapes > 0
+    net = 4 * (decoder_floats() + shapes * LATENT_DIM)
+    assert m["num_primitives"] == (2000 - net) // (4 * 8 + 1) and m["bytes"] <= 2000
     assert m["bytes"] == m["primitive_bytes"] + m["network_bytes"]
-    assert m["network_bytes"] == 4 * decoder_floats()
+    assert m["network_bytes"] == net
     assert m["latent_dim"] == LATENT_DIM and m["config"]["latent_dim"] == LATENT_DIM
     assert Image.open(out / "render.png").size == (24, 16)
     assert (out / "primitives.png").is_file() and (out / "kernels.png").is_file()
@@ -149,13 +153,15 @@ def test_cli_latent_dim_recorded(tmp_path):
     Image.fromarray((_synthetic(32, 48).numpy() * 255).astype(np.uint8)).save(photo)
     out = tmp_path / "run"
     args = ["image", str(photo), "--kernel", "learned", "--budget-bytes", "2000", "--out", str(out),
-            "--latent-dim", "3", "--iters", "2", "--downscale", "2", "--threads", "1", "-q", "--no-lpips"]
+            "--latent-dim", "3", "--shapes", "0", "--iters", "2", "--downscale", "2", "--threads", "1", "-q",
+            "--no-lpips"]
     res = CliRunner().invoke(cli, args)
     assert res.exit_code == 0, res.output
     m = json.loads((out / "metrics.json").read_text())
     assert m["latent_dim"] == 3 and m["config"]["latent_dim"] == 3
     assert m["bytes_per_primitive"] == 4 * (8 + 3) and m["num_primitives"] == (2000 - 4 * decoder_floats(3)) // 44
     assert m["network_bytes"] == 4 * decoder_floats(3) and m["network_floats"] == decoder_floats(3)
+    assert m["shapes"] == 0
 
 
 def test_cli_reads_byte_sizes_with_units(tmp_path):
@@ -198,11 +204,93 @@ def test_cli_backends_agree_and_exact_refuses_cpu(tmp_path):
     assert bad.exit_code != 0 and "exact" in bad.output and "Traceback" not in bad.output
 
 
-def test_budget_below_one_primitive_says_what_it_needs():
-    """A budget that cannot pay for the decoder plus one primitive is an input error naming the
-    smallest budget that works, and that budget fits exactly one primitive."""
-    needs = 4 * decoder_floats() + 4 * floats_per_primitive("learned")
+@pytest.mark.parametrize("shapes", [0, 64])
+def test_budget_below_one_primitive_says_what_it_needs(shapes):
+    """A budget that cannot pay for the decoder (and palette) plus one primitive is an input error
+    naming the smallest budget that works, and that budget fits exactly one primitive."""
+    needs = 4 * decoder_floats() + 4 * shapes * LATENT_DIM + bytes_per_primitive("learned", LATENT_DIM, shapes)
     with pytest.raises(InputError, match=f"at least {needs}"):
-        fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs - 1, iters=0))
-    model, summary = fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs, iters=0))
+        fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs - 1, iters=0, shapes=shapes))
+    model, summary = fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs, iters=0,
+                                                            shapes=shapes))
     assert summary["num_primitives"] == 1
+
+
+# ---- the shape palette (a learned kernel with K shared latents, one byte per splat) -------------
+
+def test_kmeans_finds_separated_clusters():
+    gen = torch.Generator().manual_seed(3)
+    centres = torch.tensor([[0.0, 0.0], [5.0, 5.0], [-5.0, 5.0]])
+    labels_true = torch.arange(300) % 3
+    pts = centres[labels_true] + 0.1 * torch.randn(300, 2, generator=gen)
+    got, labels = kmeans(pts, 3, torch.Generator().manual_seed(0))
+    # every true cluster maps to one found centre, within its spread
+    for j in range(3):
+        assert labels[labels_true == j].unique().numel() == 1
+        assert float((got[labels[labels_true == j][0]] - centres[j]).norm()) < 0.05
+    # more clusters than points: one centre per point
+    c2, l2 = kmeans(pts[:2], 8, torch.Generator().manual_seed(0))
+    assert c2.shape[0] == 2 and sorted(l2.tolist()) == [0, 1]
+
+
+@pytest.mark.parametrize("shapes", [1, 16, 256])
+@pytest.mark.parametrize("budget", [4000, 24576])
+def test_palette_bytes_within_budget(shapes, budget):
+    n = num_primitives("learned", budget, 2, shapes)
+    per = bytes_per_primitive("learned", 2, shapes)
+    assert per == 4 * 8 + 1  # geometry and colour at float32, the palette index in one byte
+    net = 4 * (decoder_floats(2) + shapes * 2)  # the decoder and the palette, paid once
+    assert n * per + net <= budget < (n + 1) * per + net
+    m = Splats2D("learned", max(n, 1), 8, 8, shapes=shapes)
+    m.quantize_shapes(torch.Generator().manual_seed(0))
+    assert m.palette.shape[0] <= shapes and m.shape_index.max() < m.palette.shape[0]
+    assert m.describe_bytes()["bytes"] == m.n * per + net
+    with pytest.raises(ValueError, match="shapes"):
+        num_primitives("learned", budget, 2, 257)
+
+
+def test_palette_draws_each_splat_with_its_entry():
+    """After quantize_shapes every splat draws with its palette latent: the table, the exact
+    decoder and both backends agree, and the palette gets the gradient (the latents do not)."""
+    m = _learned(n=12)
+    m.shapes = 3
+    m.quantize_shapes(torch.Generator().manual_seed(0))
+    lat = m.splat_latents()
+    assert torch.equal(lat, m.palette[m.shape_index])
+    assert m.shape_index.unique().numel() == 3
+    table = m.kernel_table()
+    g = torch.linspace(-1.0, 1.0, m.grid)
+    vv, uu = torch.meshgrid(g, g, indexing="ij")
+    uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)
+    ref = m.decoder(uv, lat[:, None, :]).reshape(m.n, m.grid, m.grid)
+    torch.testing.assert_close(table, ref)
+    m.backend = "torch"
+    a = m.render()
+    m.exact = True
+    b = m.render().detach()
+    assert float((a.detach() - b).abs().max()) <= 0.1 * float(b.abs().max()) + 1e-6
+    m.exact = False
+    from splatk.backends.cpu_native import available
+    if available():
+        m.backend = "cpu"
+        torch.testing.assert_close(m.render(), a, atol=1e-5, rtol=1e-4)
+    a.sum().backward()
+    assert m.palette.grad is not None and float(m.palette.grad.abs().sum()) > 0
+    assert m.latents.grad is None
+
+
+def test_palette_fit_raises_psnr_and_records_shapes(tmp_path):
+    torch.set_num_threads(1)
+    target = _synthetic()
+    budget = 4 * decoder_floats(2) + 4 * 16 * 2 + 40 * bytes_per_primitive("learned", 2, 16)
+    m0, _ = fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=0, shapes=16))
+    m1, summary = fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=80, shapes=16))
+    assert summary["num_primitives"] == 40 and m1.palette is not None
+
+    def psnr(m):
+        with torch.no_grad():
+            return -10 * math.log10(float(((m.render().clamp(0, 1) - target) ** 2).mean()))
+
+    assert psnr(m1) > psnr(m0) + 5.0
+    with pytest.raises(InputError, match="shapes"):
+        fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=0, shapes=300))

@@ -21,6 +21,11 @@ Kernels k(u, v) (``E(u, v) = exp(-4.5 (u^2 + v^2))`` is the Gaussian envelope):
   ReLU). For an image there is no camera, so Phi_proj is the identity (``z_after = z``).
   ``latent_dim = 0`` leaves one learned shape shared by every splat (the Gaussian's bytes).
                                                                          8 + L floats
+* ``learned`` with a shape palette (``shapes = K``, 1 to 256): the same kernel, but what is
+  stored is K shared latents (the palette) and one byte per splat naming its shape. Training
+  keeps a free latent per splat for its first part, then k-means them into K palette entries
+  (:meth:`Splats2D.quantize_shapes`) and trains the palette from there: a splat keeps a shape of
+  its own choosing at a quarter of a float instead of L floats.  8 floats + 1 byte
 
 Learned-kernel choices (the paper leaves them open for images):
 
@@ -64,6 +69,8 @@ LEAKY_SLOPE = 0.01
 #: float costs primitives and pays back less. At 1000 iterations: 28.50 at 2, 28.45 at 1, 28.80
 #: at 0 (gaussian 28.67). 2 is the best size that keeps a per-primitive shape; 0 shares one.
 LATENT_DIM = 2
+#: largest shape palette: its index is one byte per splat
+MAX_SHAPES = 256
 DEC_WIDTH = 8
 GABOR_WAVES = 2
 #: largest bbox half-size in pixels (bounds the pairs of a huge splat; its tail is cut there)
@@ -72,12 +79,26 @@ MAX_RADIUS = 64
 CHUNK_PAIRS = 2_000_000
 
 
-def floats_per_primitive(kernel: str, latent_dim: int = LATENT_DIM) -> int:
-    """Every per-primitive float: xy 2 + Cholesky 3 + colour 3 + the kernel's own."""
-    extra = {"gaussian": 0, "gabor": 4 * GABOR_WAVES, "learned": latent_dim}
+def _check_shapes(shapes: int) -> None:
+    if not 0 <= shapes <= MAX_SHAPES:
+        raise ValueError(f"shapes must be 0 (a latent per splat) or 1 to {MAX_SHAPES} "
+                         f"(a palette indexed by one byte), got {shapes}")
+
+
+def floats_per_primitive(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
+    """Every per-primitive float: xy 2 + Cholesky 3 + colour 3 + the kernel's own (a learned
+    kernel with a shape palette stores no latent per splat, only a byte: see bytes_per_primitive)."""
+    extra = {"gaussian": 0, "gabor": 4 * GABOR_WAVES, "learned": 0 if shapes else latent_dim}
     if kernel not in extra:
         raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
     return 8 + extra[kernel]
+
+
+def bytes_per_primitive(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
+    """float32 parameters, plus the one-byte palette index of a learned kernel with ``shapes``."""
+    _check_shapes(shapes)
+    index = 1 if kernel == "learned" and shapes else 0
+    return 4 * floats_per_primitive(kernel, latent_dim, shapes) + index
 
 
 def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
@@ -86,16 +107,46 @@ def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
     return (i * w + w) + (w * w + w) + (w + 1)
 
 
-def network_bytes(kernel: str, latent_dim: int = LATENT_DIM) -> int:
-    """float32 bytes of the kernel's shared network (the learned decoder; 0 for the others)."""
-    return 4 * decoder_floats(latent_dim) if kernel == "learned" else 0
+def network_bytes(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
+    """float32 bytes of what every splat shares: the learned decoder and, with a shape palette,
+    its ``shapes`` x ``latent_dim`` latents (0 for the other kernels)."""
+    if kernel != "learned":
+        return 0
+    return 4 * (decoder_floats(latent_dim) + shapes * latent_dim)
 
 
-def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM) -> int:
-    """Primitives that fit in ``budget_bytes`` at float32 once the shared network is paid for
-    (``splatk bench``'s rule too: budget = (budget_bytes - network_bytes) // bytes_per_primitive)."""
-    spare = int(budget_bytes) - network_bytes(kernel, latent_dim)
-    return max(0, spare) // (4 * floats_per_primitive(kernel, latent_dim))
+def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
+    """Primitives that fit in ``budget_bytes`` once the shared network is paid for (``splatk
+    bench``'s rule too: budget = (budget_bytes - network_bytes) // bytes_per_primitive)."""
+    spare = int(budget_bytes) - network_bytes(kernel, latent_dim, shapes)
+    return max(0, spare) // bytes_per_primitive(kernel, latent_dim, shapes)
+
+
+def kmeans(points: Tensor, k: int, generator: torch.Generator | None = None, steps: int = 50) -> tuple[Tensor, Tensor]:
+    """Lloyd's k-means with k-means++ seeding: ``points`` [N, D] -> (centres [k', D], labels [N]);
+    k' = min(k, N). An emptied cluster is re-seeded at the point farthest from its centre."""
+    n = points.shape[0]
+    k = min(int(k), n)
+    first = int(torch.randint(n, (1,), generator=generator))
+    centres = points[first:first + 1]
+    for _ in range(1, k):
+        d2 = torch.cdist(points, centres).min(1).values ** 2
+        # a point already picked has weight 0; all-zero weights (duplicates) fall back to uniform
+        w = d2 if float(d2.sum()) > 0 else torch.ones_like(d2)
+        centres = torch.cat([centres, points[torch.multinomial(w, 1, generator=generator)]])
+    labels = torch.cdist(points, centres).argmin(1)
+    for _ in range(steps):
+        for j in range(k):
+            members = labels == j
+            if members.any():
+                centres[j] = points[members].mean(0)
+            else:
+                centres[j] = points[torch.cdist(points, centres).min(1).values.argmax()]
+        new = torch.cdist(points, centres).argmin(1)
+        if torch.equal(new, labels):
+            break
+        labels = new
+    return centres, labels
 
 
 class PlanarDecoder(nn.Module):
@@ -130,12 +181,14 @@ class Splats2D(nn.Module):
         grid: table nodes per axis of the learned kernel (4 to 8 are sensible).
         exact: learned kernel only: evaluate Phi_dec_planar per pixel instead of the table.
         latent_dim: learned kernel only: floats of each primitive's latent z.
+        shapes: learned kernel only: size of the shape palette that :meth:`quantize_shapes`
+            makes (0: every splat keeps its own latent; see the module docstring).
         generator: for the random init (means uniform, colours uniform in [0, 0.1]).
     """
 
     def __init__(self, kernel: str, n: int, height: int, width: int, grid: int = 8,
                  exact: bool = False, generator: torch.Generator | None = None,
-                 latent_dim: int = LATENT_DIM, backend: str = "auto"):
+                 latent_dim: int = LATENT_DIM, backend: str = "auto", shapes: int = 0):
         super().__init__()
         if backend not in BACKENDS:
             raise ValueError(f"unknown image backend {backend!r}; choose from {', '.join(BACKENDS)}")
@@ -149,6 +202,11 @@ class Splats2D(nn.Module):
         if kernel == "learned" and latent_dim < 0:
             raise ValueError(f"latent_dim must be >= 0, got {latent_dim}")
         self.latent_dim = int(latent_dim)
+        _check_shapes(int(shapes))
+        self.shapes = int(shapes) if kernel == "learned" else 0
+        # set by quantize_shapes: the palette [K, L] and each splat's entry in it
+        self.palette: nn.Parameter | None = None
+        self.register_buffer("shape_index", None)
         gen = generator
         self.xy_raw = nn.Parameter(torch.atanh(torch.rand(n, 2, generator=gen) * 1.96 - 0.98))
         # initial sigma: splats tile the image about twice over
@@ -177,12 +235,34 @@ class Splats2D(nn.Module):
         c = self.chol
         return c[:, 0].abs() + 0.3, c[:, 1], c[:, 2].abs() + 0.3
 
+    @torch.no_grad()
+    def quantize_shapes(self, generator: torch.Generator | None = None) -> None:
+        """Replace the per-splat latents by a palette of ``shapes`` entries: k-means of the
+        latents, each splat pointing at its nearest centre. From here on the palette is the
+        trained parameter and ``latents`` is unused."""
+        if self.kernel != "learned" or not self.shapes:
+            raise ValueError("quantize_shapes needs the learned kernel with shapes > 0")
+        centres, labels = kmeans(self.latents.detach(), self.shapes, generator)
+        self.palette = nn.Parameter(centres.clone())
+        self.shape_index = labels
+
+    def splat_latents(self, idx: Tensor | None = None) -> Tensor:
+        """[N or P, L] the latent each splat draws with (its palette entry once quantized)."""
+        if self.palette is None:
+            return self.latents if idx is None else self.latents[idx]
+        index = self.shape_index if idx is None else self.shape_index[idx]
+        return self.palette[index]
+
     def kernel_table(self) -> Tensor:
-        """[N, G, G] Phi_dec_planar at the grid nodes (learned kernel)."""
+        """[N, G, G] Phi_dec_planar at the grid nodes (learned kernel); with a palette, one table
+        per palette entry, gathered per splat."""
         g = torch.linspace(-1.0, 1.0, self.grid, dtype=self.latents.dtype, device=self.latents.device)
         vv, uu = torch.meshgrid(g, g, indexing="ij")
         uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)  # [1, G*G, 2]
-        out = self.decoder(uv, self.latents[:, None, :])  # [N, G*G]
+        if self.palette is not None:
+            out = self.decoder(uv, self.palette[:, None, :])[self.shape_index]  # [N, G*G]
+        else:
+            out = self.decoder(uv, self.latents[:, None, :])  # [N, G*G]
         return out.reshape(self.n, self.grid, self.grid)
 
     def _extras(self) -> Tensor:
@@ -210,7 +290,7 @@ class Splats2D(nn.Module):
             waves = (a * torch.cos(math.pi * f * uv[:, :, None])).sum(-1)  # [P, 2]
             return env * waves[:, 0] * waves[:, 1]
         if self.exact or table is None:
-            return env * self.decoder(uv, self.latents[idx])
+            return env * self.decoder(uv, self.splat_latents(idx))
         return env * bilinear(table, idx, uv)
 
     # ---- rendering ------------------------------------------------------------------------
@@ -290,9 +370,10 @@ class Splats2D(nn.Module):
         return out.reshape(self.height, self.width, 3)
 
     def describe_bytes(self) -> dict:
-        """Honest storage at float32: ``bytes`` is everything needed to redraw the image (the
-        primitives and, for the learned kernel, the shared decoder)."""
-        per = 4 * floats_per_primitive(self.kernel, self.latent_dim)
-        net = network_bytes(self.kernel, self.latent_dim)
+        """Honest storage at float32 (and a byte per palette index): ``bytes`` is everything
+        needed to redraw the image (the primitives and, for the learned kernel, the shared
+        decoder and palette)."""
+        per = bytes_per_primitive(self.kernel, self.latent_dim, self.shapes)
+        net = network_bytes(self.kernel, self.latent_dim, self.shapes)
         return {"bytes": per * self.n + net, "primitive_bytes": per * self.n, "bytes_per_primitive": per,
                 "network_bytes": net}

@@ -1,9 +1,10 @@
 """`splatk image`: fit one photo with 2D splats at a byte budget (paper Sec. 5, image representation).
 
-The number of primitives is ``(budget_bytes - network_bytes) // (4 * floats per primitive)`` (see
+The number of primitives is ``(budget_bytes - network_bytes) // bytes_per_primitive`` (see
 :func:`splatk.models.image2d.num_primitives`): the learned kernel's shared decoder (121 floats,
-484 bytes at the default latent size 2) is paid out of the same budget, as ``splatk bench``
-does, and ``bytes`` in metrics.json counts it.
+484 bytes at the default latent size 2) and its shape palette (64 latents, 512 bytes; each splat
+names its shape with one byte) are paid out of the same budget, as ``splatk bench`` does, and
+``bytes`` in metrics.json counts them.
 Training follows GaussianImage (peers.md Sec. 7.1): random init, L2 loss on the unclamped sum,
 Adam; with a few hundred to a few thousand CPU iterations instead of 50k, the learning rates are
 larger than its 1e-3 and decay 10x over the run (cosine).
@@ -26,8 +27,8 @@ import torch
 
 from ..errors import InputError
 from ..metrics import compute_metrics, lpips_available
-from ..models.image2d import (BACKENDS, KERNELS, LATENT_DIM, Splats2D, decoder_floats, floats_per_primitive,
-                              network_bytes, num_primitives)
+from ..models.image2d import (BACKENDS, KERNELS, LATENT_DIM, MAX_SHAPES, Splats2D, bytes_per_primitive,
+                              decoder_floats, network_bytes, num_primitives)
 
 
 @dataclass
@@ -51,6 +52,14 @@ class ImageFitConfig:
     #: learned kernel: floats of each primitive's latent (fewer floats = more primitives per byte;
     #: 0 = one learned shape shared by all splats)
     latent_dim: int = LATENT_DIM
+    #: learned kernel: size of the shape palette (0 = a latent per splat; K = K shared latents
+    #: and a one-byte index per splat, k-means of the latents at ``shape_start`` of the run).
+    #: Six Kodak photos at 192x128, 2000 iterations (benchmarks/results/images_palette.json):
+    #: 64 shapes vs a latent per splat, mean PSNR 25.58 vs 25.44 dB at 8 KiB, 29.63 vs 29.34 at
+    #: 24 KiB (Gaussian 25.75 / 29.64), and the best LPIPS of the three at both budgets.
+    shapes: int = 64
+    #: learned kernel with shapes: share of the iterations trained with a latent per splat
+    shape_start: float = 0.5
     #: renderer: auto | cpu (native OpenMP) | torch (reference; also the exact learned mode's)
     backend: str = "auto"
     # Learning rates: measured on kodim05 (downscale 4, 8 KiB, 300 iterations), 2x these
@@ -117,11 +126,17 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
         raise InputError(None, f"unknown kernel {cfg.kernel!r}", f"choose from {', '.join(KERNELS)}")
     if cfg.kernel == "learned" and cfg.latent_dim < 0:
         raise InputError(None, f"latent_dim must be >= 0, got {cfg.latent_dim}")
-    n = num_primitives(cfg.kernel, cfg.budget_bytes, cfg.latent_dim)
+    shapes = cfg.shapes if cfg.kernel == "learned" else 0
+    if not 0 <= shapes <= MAX_SHAPES:
+        raise InputError(None, f"shapes must be 0 to {MAX_SHAPES}, got {shapes}",
+                         "0 keeps a latent per splat; a palette is indexed by one byte")
+    if shapes and not 0.0 <= cfg.shape_start < 1.0:
+        raise InputError(None, f"shape_start must be in [0, 1), got {cfg.shape_start}")
+    n = num_primitives(cfg.kernel, cfg.budget_bytes, cfg.latent_dim, shapes)
     if n < 1:
-        net = network_bytes(cfg.kernel, cfg.latent_dim)
-        needs = net + 4 * floats_per_primitive(cfg.kernel, cfg.latent_dim)
-        paid = f" after its {net}-byte shared decoder" if net else ""
+        net = network_bytes(cfg.kernel, cfg.latent_dim, shapes)
+        needs = net + bytes_per_primitive(cfg.kernel, cfg.latent_dim, shapes)
+        paid = f" after its {net}-byte shared decoder{' and palette' if shapes else ''}" if net else ""
         raise InputError(None, f"budget of {cfg.budget_bytes} bytes holds no {cfg.kernel} primitive{paid}",
                          f"raise --budget-bytes to at least {needs}")
     if cfg.iters < 0:
@@ -135,12 +150,19 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
         raise InputError(None, "the exact learned mode runs on the torch backend only",
                          "drop --exact or use --backend torch")
     model = Splats2D(cfg.kernel, n, h, w, grid=cfg.grid, exact=cfg.exact, generator=gen,
-                     latent_dim=cfg.latent_dim, backend=cfg.backend)
+                     latent_dim=cfg.latent_dim, backend=cfg.backend, shapes=shapes)
     s0 = float(model.chol[0, 0].detach())
     opt = _optimizer(model, cfg, s0)
     t0 = time.perf_counter()
     loss_v = float("nan")
+    # the palette replaces the latents before this iteration (round: 0 -> from the start)
+    palette_at = 1 + round(cfg.shape_start * cfg.iters) if shapes else None
+    if shapes and cfg.iters == 0:
+        model.quantize_shapes(gen)
     for it in range(1, cfg.iters + 1):
+        if it == palette_at:
+            model.quantize_shapes(gen)
+            opt.add_param_group({"params": [model.palette], "lr": cfg.lr_kernel, "base_lr": cfg.lr_kernel})
         frac = (it - 1) / max(cfg.iters, 1)
         scale = 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * frac))  # cosine decay to 0.1x
         for g in opt.param_groups:
@@ -233,6 +255,7 @@ def run_image_fit(photo: Path, out: Path, cfg: ImageFitConfig, overwrite: bool =
         "network_bytes": sizes["network_bytes"],
         "network_floats": decoder_floats(cfg.latent_dim) if cfg.kernel == "learned" else 0,
         "latent_dim": cfg.latent_dim if cfg.kernel == "learned" else 0,
+        "shapes": model.shapes,
         "image": str(photo), "height": int(target.shape[0]), "width": int(target.shape[1]),
         "config": asdict(cfg),
     }
