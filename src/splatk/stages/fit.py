@@ -95,7 +95,7 @@ def boost_short_run_lrs(cfg: "FitConfig", keep: frozenset | set = frozenset()) -
     (``--no-short-run-lrs``, ``short_run_lrs: false`` as in the demo preset): 2000 iterations,
     50k Gaussians, fox at 1/16: 23.79 dB without, 29.77 with; lego at 1/8: 31.60 without, 31.22
     with. It was bench-only until the trainer's collapse checks kept LR x10 on top of it above
-    the initial PSNR in the stability matrix (README, "Stability"). Settings named in ``keep``
+    the initial PSNR in the stability matrix (docs/measurements.md, "Stability"). Settings named in ``keep``
     and explicit kernel options stay as given.
     """
     t = cfg.train
