@@ -112,6 +112,38 @@ def test_collapse_rollback_to_a_worse_snapshot_does_not_loop():
     assert len(loss_rollbacks(tr)) <= 3
 
 
+def test_a_loss_rise_that_rollbacks_do_not_cure_turns_the_check_off():
+    """A rise that comes back after every rollback to the same snapshot (as MCMC's growth did on
+    bonsai at 400k) is not the step size's doing: after MAX_REPEATED_LOSS_ROLLBACKS the run keeps
+    its state, gets its step size back and goes on without the loss check until the next
+    snapshot, which turns it on again. A NaN rollback is unaffected."""
+    from splatk.train.trainer import MAX_REPEATED_LOSS_ROLLBACKS
+
+    scene = synthetic_scene(num_views=8)
+    tr = collapse_trainer(scene, 400)
+    tr.run(should_stop=lambda: tr.it >= 200)
+    tr._snapshot = tr.state_dict()
+    tr.cfg.snapshot_every = 1000  # no new snapshot while the rise repeats
+    real = tr._diverging
+
+    def rises_at_270(loss):  # the stats still update; the rise is at the same place every time
+        fired = real(loss)
+        return fired or (270 <= tr.it < 275 and tr.best_loss_mean is not None)
+
+    tr._diverging = rises_at_270
+    tr.run(should_stop=lambda: tr.it >= 280)
+    kinds = [e["event"] for e in tr.events]
+    assert kinds == ["loss_rollback"] * MAX_REPEATED_LOSS_ROLLBACKS + ["loss_check_off"], tr.events
+    assert all("rolled back to iteration 200" in e["message"] for e in tr.events[:-1])
+    assert tr.lr_scale == 1.0 and not tr._loss_check and tr.it == 280
+    tr.cfg.snapshot_every = 50
+    tr.run(should_stop=lambda: tr.it >= 310)  # the snapshot at 300 turns the check back on
+    assert tr._loss_check and tr._loss_rollback_series is None
+    tr._diverging = real
+    tr.run()
+    assert tr.it == 400 and mean_test_psnr(tr.model, scene) > 20.0
+
+
 def test_loss_check_judges_against_the_start_as_well_as_the_lowest_mean():
     """A run that collapses before it ever improved has its lowest mean near its start, so a
     rise to 1.4x is below divergence_factor (2) x lowest; it is still worse than where the run

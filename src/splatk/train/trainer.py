@@ -50,6 +50,13 @@ START_LOSS_FACTOR = 1.25
 #: iterations 92 and 81, to the init) and ended at 27.0 dB. At 1e-5 the snapshots it went back
 #: to were already shrinking, and six rollbacks ended at 11.9 dB.
 VANISHED_SCALE = 1e-4
+#: a loss rise that comes back after this many rollbacks to the same snapshot is not the step
+#: size's doing: the loss check goes off (until the next snapshot) and the step size returns to
+#: where it was before the first of them. Bonsai at 1/16 with a 400k budget (2000 iterations):
+#: MCMC's growth from 200k to 400k around iteration 350 doubled the running mean every time, and
+#: without this limit the run rolled back to iteration 200 nine times, the step size down to
+#: x0.002, and reached iteration 400 after 36 minutes instead of about one.
+MAX_REPEATED_LOSS_ROLLBACKS = 3
 
 
 @dataclass
@@ -148,6 +155,10 @@ class Trainer:
         self._snapshot = None
         # False while the snapshot a rollback would restore is itself all invisible
         self._invisible_check = True
+        # False once MAX_REPEATED_LOSS_ROLLBACKS to one snapshot did not stop a loss rise (until
+        # the next snapshot); the series: [snapshot iteration, rollbacks, step size before them]
+        self._loss_check = True
+        self._loss_rollback_series: list | None = None
 
     # ---- optimisers and schedules ------------------------------------------------------
     def _build_optimizers(self) -> None:
@@ -213,9 +224,10 @@ class Trainer:
                 self.model.prims["quats"].data = torch.nn.functional.normalize(self.model.prims["quats"].data, dim=-1)
             if not self._params_finite():
                 event = self._rollback("non-finite parameters")
-            elif self._diverging(float(loss.detach())):
-                event = self._rollback(f"loss diverged (running mean {self.loss_mean:.4g}, lowest "
-                                       f"{self.best_loss_mean:.4g})", kind="loss_rollback")
+            elif self._diverging(float(loss.detach())) and self._loss_check:
+                reason = f"loss diverged (running mean {self.loss_mean:.4g}, lowest {self.best_loss_mean:.4g})"
+                event = (self._loss_check_off(reason) if self._repeated_loss_rollbacks()
+                         else self._rollback(reason, kind="loss_rollback", loss_rise=True))
             elif self._all_invisible():
                 event = self._rollback("every primitive is transparent (opacity <= "
                                        f"{self.strategy.cfg.min_opacity:g}) or vanishingly small "
@@ -227,6 +239,7 @@ class Trainer:
                         and not self._model_invisible()):
                     self._snapshot = self.state_dict()
                     self._invisible_check = True
+                    self._loss_check, self._loss_rollback_series = True, None
         with torch.no_grad():
             mse = ((out.image.detach().clamp(0, 1) - target) ** 2).mean().item()
         self.elapsed += time.perf_counter() - t0
@@ -292,10 +305,36 @@ class Trainer:
         return (self.loss_mean <= HEALTHY_LOSS_FACTOR * self.best_loss_mean
                 and self.loss_mean <= self.start_loss_mean)
 
-    def _rollback(self, reason: str, kind: str = "nan_rollback") -> str:
+    def _repeated_loss_rollbacks(self) -> bool:
+        """True when MAX_REPEATED_LOSS_ROLLBACKS rollbacks to the current snapshot have each
+        been followed by another loss rise."""
+        series = self._loss_rollback_series
+        return (series is not None and self._snapshot is not None and series[0] == self._snapshot["it"]
+                and series[1] >= MAX_REPEATED_LOSS_ROLLBACKS)
+
+    def _loss_check_off(self, reason: str) -> str:
+        """Keep the current state, give the step size back, stop judging the loss until the
+        next snapshot: the rise is the model's own (growth), and rolling back again would only
+        repeat it at a smaller step."""
+        it, (snap_it, count, lr_before) = self.it, self._loss_rollback_series
+        self.lr_scale = lr_before
+        self._loss_check = False
+        self.loss_mean, self.best_loss_mean, self.start_loss_mean, self._steps_since_reset = None, None, None, 0
+        msg = (f"iteration {it}: {reason} again after {count} rollbacks to iteration {snap_it}; kept "
+               f"going, step size back to x{lr_before:g}, loss check off until the next snapshot")
+        self.events.append({"iteration": it, "event": "loss_check_off", "message": msg})
+        return msg
+
+    def _rollback(self, reason: str, kind: str = "nan_rollback", loss_rise: bool = False) -> str:
         """Never die of a NaN (or a collapse): restore the last good state, halve the step
         sizes, go on."""
         it, lr_scale = self.it, self.lr_scale
+        if loss_rise and self._snapshot is not None:
+            series = self._loss_rollback_series
+            if series is not None and series[0] == self._snapshot["it"]:
+                series[1] += 1
+            else:
+                self._loss_rollback_series = [self._snapshot["it"], 1, lr_scale]
         if self._snapshot is not None:
             # the clock, the event log and the step-size cut survive the restore: restoring the
             # snapshot's own lr_scale would retry the same diverging steps forever
