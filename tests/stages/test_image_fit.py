@@ -231,6 +231,11 @@ def test_kmeans_finds_separated_clusters():
     # more clusters than points: one centre per point
     c2, l2 = kmeans(pts[:2], 8, torch.Generator().manual_seed(0))
     assert c2.shape[0] == 2 and sorted(l2.tolist()) == [0, 1]
+    # one cluster: the mean, and the points are left as they were
+    before = pts.clone()
+    c1, l1 = kmeans(pts, 1)
+    torch.testing.assert_close(c1[0], before.mean(0))
+    assert torch.equal(pts, before) and l1.unique().tolist() == [0]
 
 
 @pytest.mark.parametrize("shapes", [1, 16, 256])
@@ -294,3 +299,6 @@ def test_palette_fit_raises_psnr_and_records_shapes(tmp_path):
     assert psnr(m1) > psnr(m0) + 5.0
     with pytest.raises(InputError, match="shapes"):
         fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=0, shapes=300))
+    # with no latent (one shared shape) a palette has nothing to share: none is made or paid for
+    m2, _ = fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=2, shapes=16, latent_dim=0))
+    assert m2.shapes == 0 and m2.palette is None

@@ -128,7 +128,7 @@ def kmeans(points: Tensor, k: int, generator: torch.Generator | None = None, ste
     n = points.shape[0]
     k = min(int(k), n)
     first = int(torch.randint(n, (1,), generator=generator))
-    centres = points[first:first + 1]
+    centres = points[first:first + 1].clone()  # updated in place below; points stay as given
     for _ in range(1, k):
         d2 = torch.cdist(points, centres).min(1).values ** 2
         # a point already picked has weight 0; all-zero weights (duplicates) fall back to uniform

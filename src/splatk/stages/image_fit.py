@@ -126,7 +126,8 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
         raise InputError(None, f"unknown kernel {cfg.kernel!r}", f"choose from {', '.join(KERNELS)}")
     if cfg.kernel == "learned" and cfg.latent_dim < 0:
         raise InputError(None, f"latent_dim must be >= 0, got {cfg.latent_dim}")
-    shapes = cfg.shapes if cfg.kernel == "learned" else 0
+    # a palette of empty latents (latent_dim 0: one shared shape already) would only cost its byte
+    shapes = cfg.shapes if cfg.kernel == "learned" and cfg.latent_dim > 0 else 0
     if not 0 <= shapes <= MAX_SHAPES:
         raise InputError(None, f"shapes must be 0 to {MAX_SHAPES}, got {shapes}",
                          "0 keeps a latent per splat; a palette is indexed by one byte")
