@@ -451,13 +451,18 @@ def run_fit(
     return out
 
 
-def _refit_trainer(scene, all_train: list, cfg: FitConfig, budget: int) -> Trainer:
-    """The trainer of a fixed-budget run at ``budget`` on every train view: what `splatk fit
-    --budget N` builds (same seed, init rule and schedules), for --budget auto's refit."""
-    scene.train = list(all_train)
-    fixed = replace(cfg, auto_budget=None, train=replace(cfg.train, budget=budget))
+def _fixed_trainer(scene, views: list, cfg: FitConfig, **train: object) -> Trainer:
+    """The trainer `splatk fit --budget N` builds (same seed, init rule and schedules), on
+    ``views``, with ``train`` replacing TrainConfig fields: --budget auto's refit and short runs."""
+    fixed = replace(cfg, auto_budget=None, train=replace(cfg.train, **train))
+    scene.train = list(views)
     torch.manual_seed(fixed.train.seed)
     return Trainer(scene, build_model(scene, fixed), fixed.train)
+
+
+def _refit_trainer(scene, all_train: list, cfg: FitConfig, budget: int) -> Trainer:
+    """--budget auto's refit: a fixed-budget run at ``budget`` on every train view."""
+    return _fixed_trainer(scene, all_train, cfg, budget=budget)
 
 
 def _short_run_trainer(scene, views: list, cfg: FitConfig, budget: int) -> Trainer:
@@ -472,11 +477,8 @@ def _short_run_trainer(scene, views: list, cfg: FitConfig, budget: int) -> Train
     if not t.time_budget:
         growth_steps = math.ceil(math.log(4.0) / math.log(MCMCConfig.growth))  # a quarter -> all
         refine_every = max(1, min(refine_every, int(iters / 2 / growth_steps)))
-    short = replace(cfg, auto_budget=None, train=replace(t, budget=budget, iters=iters, time_budget=time_budget,
-                                                         refine_every=refine_every))
-    scene.train = list(views)
-    torch.manual_seed(short.train.seed)
-    return Trainer(scene, build_model(scene, short), short.train)
+    return _fixed_trainer(scene, views, cfg, budget=budget, iters=iters, time_budget=time_budget,
+                          refine_every=refine_every)
 
 
 def _save(write: Callable[[], object], path: Path, out: Path, kept_it: int | None) -> None:

@@ -53,9 +53,10 @@ VANISHED_SCALE = 1e-4
 #: a loss rise that comes back after this many rollbacks to the same snapshot is not the step
 #: size's doing: the loss check goes off (until the next snapshot) and the step size returns to
 #: where it was before the first of them. Bonsai at 1/16 with a 400k budget (2000 iterations):
-#: MCMC's growth from 200k to 400k around iteration 350 doubled the running mean every time, and
-#: without this limit the run rolled back to iteration 200 nine times, the step size down to
-#: x0.002, and reached iteration 400 after 36 minutes instead of about one.
+#: MCMC's growth from 200k to 400k around iteration 350 raised the running mean past the check
+#: every time, and without this limit the run rolled back to iteration 200 nine times in 36
+#: minutes of training, the step size down to x0.002, without getting past iteration 400 (a
+#: whole 200k run takes 8 minutes).
 MAX_REPEATED_LOSS_ROLLBACKS = 3
 
 
