@@ -8,8 +8,10 @@ from pathlib import Path
 
 import cv2
 import pytest
+import torch
 
 from splatk.data.synthetic import make_demo_scene
+from splatk.machine import CPU_FEATURES
 from splatk.stages import bench
 from splatk.stages.bench import (
     BenchConfig,
@@ -60,6 +62,9 @@ def test_one_result_json_per_run(grid):
         for key in ("psnr", "ssim", "train_seconds", "render_ms", "footprint_mb", "num_primitives", "config"):
             assert r[key] is not None, key
         assert "lpips" in r and r["threads"] == 1
+        # which CPU the figure came from: results are only bit-comparable on the same features
+        assert r["machine"]["torch"] == torch.__version__ and r["machine"]["logical_cpus"] >= 1
+        assert set(r["machine"]["cpu_features"]) <= set(CPU_FEATURES)
         assert r["config"]["train"]["iters"] == 40 and r["num_primitives"] <= 200
         assert (out / "runs" / "demo" / r["method"] / "model.pt").is_file()
     assert [r["method"] for r in res.rows] == ["gaussian-sh", "learned-k2-sh"]

@@ -74,3 +74,22 @@ def test_keep_is_the_default_and_shrink_works_for_any_kernel():
         assert bool((model.prims["log_scales"] < before["log_scales"]).all()), kernel
     with pytest.raises(ValueError, match="split_scales"):
         _split_into(2, "sometimes")
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_growth_waits_while_the_step_found_as_many_dead_as_it_would_add(hold):
+    """100 primitives, 10 of them dead: the 5% growth (5 new) waits with hold_growth, and the dead
+    are relocated either way; with 2 dead (fewer than it adds) the model grows as usual."""
+    for n_dead, grows in ((10, not hold), (2, True)):
+        model = random_model(100, seed=5)
+        with torch.no_grad():
+            model.prims["opacity_logits"].fill_(math.log(0.5 / 0.5))
+            model.prims["opacity_logits"][:n_dead] = -10.0  # opacity 4.5e-5 < min_opacity
+        lrs = {**model.learning_rates(), "means": 1e-4}
+        opt = PrimitiveAdam(model.prims, lrs)
+        strategy = MCMCStrategy(MCMCConfig(cap_max=1000, refine_every=1, refine_start=0, hold_growth=hold))
+        strategy.step(1, 0.0, model, opt, means_lr=1e-4, generator=torch.Generator().manual_seed(0))
+        assert strategy.last_stats["relocated"] == n_dead
+        assert model.num_primitives == (105 if grows else 100), (n_dead, hold)
+        assert strategy.last_stats["growth_held"] == (not grows)
+        assert bool((model.opacities > strategy.cfg.min_opacity).all())

@@ -39,6 +39,7 @@ import yaml
 from ..data import detect_format, load_scene
 from ..errors import InputError
 from ..kernels.planar import PLANAR_KERNELS
+from ..machine import machine_info
 from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
 from ..train.trainer import TrainConfig
@@ -399,6 +400,7 @@ def run_one(
         "derived": notes,
         "config": fit_cfg.to_dict(),
         "run": str(run),
+        "machine": machine_info(),
     })
     if summary.get("auto_budget"):
         row["auto_budget"] = summary["auto_budget"]["chosen_budget"]

@@ -90,6 +90,9 @@ class TrainConfig:
     noise_lr: float = 5e4
     #: MCMC split copies' scales: keep (DBS) | shrink (3DGS-MCMC Eq. 9; see splatk.train.mcmc)
     split_scales: str = "keep"
+    #: MCMC skips a step's growth while that step relocated at least as many dead primitives
+    #: as it would add (splatk.train.mcmc MCMCStrategy.add)
+    hold_growth: bool = True
     #: multiplies every learning rate (primitives, colour, kernel networks); 1 = the defaults
     lr_scale: float = 1.0
     #: multiplies the log-scale learning rate alone. 0.005 is tuned for 30k iterations; short
@@ -147,6 +150,7 @@ class Trainer:
                 cap_max=config.budget, refine_every=config.refine_every,
                 refine_start=config.refine_start, refine_stop=config.refine_stop,
                 noise_lr=config.noise_lr, split_scales=config.split_scales,
+                hold_growth=config.hold_growth,
             )
         )
         self._build_optimizers()
@@ -235,6 +239,7 @@ class Trainer:
                                        f"(scales < {VANISHED_SCALE:g} x the scene extent)", kind="loss_rollback")
             else:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
+                event = self._note_growth_held()
                 # a snapshot taken while the loss is already climbing would be rolled back to
                 if (self.it % self.cfg.snapshot_every == 0 and self._loss_healthy()
                         and not self._model_invisible()):
@@ -382,6 +387,18 @@ class Trainer:
                 on_checkpoint(self)
             if should_stop and should_stop():
                 break
+
+    def _note_growth_held(self) -> str | None:
+        """Log the first refine step whose growth MCMC held back (mcmc.MCMCStrategy.add), so a
+        model that ends below its budget says why; later ones are not logged."""
+        stats = self.strategy.last_stats
+        if not stats.get("growth_held") or any(e["event"] == "growth_held" for e in self.events):
+            return None
+        msg = (f"iteration {self.it}: MCMC held growth at {stats['num']} primitives: the step found "
+               f"{stats['relocated']} dead, at least as many as it would add; it grows again once "
+               "fewer die (first occurrence; the model may end below its budget)")
+        self.events.append({"iteration": self.it, "event": "growth_held", "message": msg})
+        return msg
 
     # ---- state ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
