@@ -133,10 +133,12 @@ def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
     ref_proc.stderr.close()
     proc.stderr.close()
 
-    # same end, same log (one line per 100 iterations, none twice), same numbers
+    # same end, same log (one line per 100 iterations, none twice, and the same extra lines for
+    # events such as MCMC's growth_held), same numbers
     fits = [json.loads((r / "fit.json").read_text()) for r in (ref, run)]
     assert fits[0]["iterations"] == fits[1]["iterations"] == ITERS
-    assert log_its(run) == log_its(ref) == list(range(100, ITERS + 1, 100))
+    assert log_its(run) == log_its(ref)
+    assert [i for i in log_its(run) if i % 100 == 0] == list(range(100, ITERS + 1, 100))
     logs = [[json.loads(ln) for ln in (r / "train_log.jsonl").read_text().splitlines()] for r in (ref, run)]
     for a, b in zip(*logs):
         # torch's CPU kernels are deterministic at one thread; 1e-4 leaves room for a different
