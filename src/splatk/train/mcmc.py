@@ -33,7 +33,7 @@ class MCMCConfig:
     #: scales of split copies: keep (DBS) | shrink (3DGS-MCMC Eq. 9)
     split_scales: str = "keep"
     #: skip a refine step's growth while it found at least as many dead primitives as the growth
-    #: would add (see :meth:`MCMCStrategy.add`)
+    #: would add (see :meth:`MCMCStrategy.step`)
     hold_growth: bool = True
 
 
@@ -76,15 +76,27 @@ class MCMCStrategy:
     @torch.no_grad()
     def step(self, it: int, progress: float, model, opt: PrimitiveAdam, means_lr: float,
              generator: torch.Generator | None = None) -> None:
+        """Relocate the dead, grow, add noise.
+
+        With ``hold_growth``, a step that found at least as many dead primitives as it would add
+        does not grow: the model is not using the capacity it has. Growing it anyway cascades when
+        the budget far exceeds what the views can constrain (bonsai at 1/16, 50 x 33 pixels,
+        400k cap, 2000 iterations: the dead share per step rose from 7% at 157k primitives to 95%
+        at 326k, as each step split live primitives into copies born near the dead threshold,
+        and train PSNR fell from 22 to 12 dB; held, the run ends at 232k primitives and 27.38 dB
+        test PSNR instead of 18.10). While a model grows normally far fewer die per step than
+        growth adds (fox 50k: 505 dead against 2,332 added at 47k primitives), but on the tiny
+        images of the auto-budget benchmark (seeds 0 and 1) it fired in 10 of 16 runs, and 3
+        ended below their budget (lego 200k at 139k on both seeds, fox 400k at 392k).
+        """
         if not self.is_refine_step(it, progress):
             return
         relocated = self.relocate(model, opt, generator)
-        n = model.num_primitives
-        would_add = max(0, min(self.cfg.cap_max, int(self.cfg.growth * n)) - n)
-        added = self.add(model, opt, generator, dead=relocated)
+        held = self.cfg.hold_growth and relocated >= self.growth_count(model.num_primitives) > 0
+        added = 0 if held else self.add(model, opt, generator)
         self.inject_noise(model, means_lr, generator)
         self.last_stats = {"relocated": relocated, "added": added, "num": model.num_primitives,
-                           "growth_held": would_add > 0 and added == 0}
+                           "growth_held": held}
 
     def _split(self, model, sources: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(new opacity logit, new log-scales or None when scales are kept) of each sampled
@@ -128,24 +140,13 @@ class MCMCStrategy:
         opt.reset_moments(torch.cat([src, dead_idx]))
         return n_dead
 
-    def add(self, model, opt: PrimitiveAdam, generator=None, dead: int = 0) -> int:
-        """Grow by ``growth`` up to ``cap_max``; ``dead``: how many this step just relocated.
+    def growth_count(self, n: int) -> int:
+        """How many primitives a growth step adds to a model of ``n``."""
+        return max(0, min(self.cfg.cap_max, int(self.cfg.growth * n)) - n)
 
-        With ``hold_growth``, a step that found at least as many dead primitives as it would add
-        does not grow: the model is not using the capacity it has. Growing it anyway cascades when
-        the budget far exceeds what the views can constrain (bonsai at 1/16, 50 x 33 pixels,
-        400k cap, 2000 iterations: the dead share per step rose from 7% at 157k primitives to 95%
-        at 326k, as each step split live primitives into copies born near the dead threshold,
-        and train PSNR fell from 22 to 12 dB; held, the run ends at 232k primitives and 27.38 dB
-        test PSNR instead of 18.10). While a model grows normally far fewer die per step than
-        growth adds (fox 50k: 505 dead against 2,332 added at 47k primitives), but on the tiny
-        images of the auto-budget benchmark (seeds 0 and 1) it fired in 10 of 16 runs, and 3
-        ended below their budget (lego 200k at 139k on both seeds, fox 400k at 392k).
-        """
-        n = model.num_primitives
-        target = min(self.cfg.cap_max, int(self.cfg.growth * n))
-        n_add = max(0, target - n)
-        if n_add == 0 or (self.cfg.hold_growth and dead >= n_add):
+    def add(self, model, opt: PrimitiveAdam, generator=None) -> int:
+        n_add = self.growth_count(model.num_primitives)
+        if n_add == 0:
             return 0
         alive = model.opacities > self.cfg.min_opacity
         if int(alive.sum()) == 0:

@@ -91,7 +91,7 @@ class TrainConfig:
     #: MCMC split copies' scales: keep (DBS) | shrink (3DGS-MCMC Eq. 9; see splatk.train.mcmc)
     split_scales: str = "keep"
     #: MCMC skips a step's growth while that step relocated at least as many dead primitives
-    #: as it would add (splatk.train.mcmc MCMCStrategy.add)
+    #: as it would add (splatk.train.mcmc MCMCStrategy.step)
     hold_growth: bool = True
     #: multiplies every learning rate (primitives, colour, kernel networks); 1 = the defaults
     lr_scale: float = 1.0
@@ -389,7 +389,7 @@ class Trainer:
                 break
 
     def _note_growth_held(self) -> str | None:
-        """Log the first refine step whose growth MCMC held back (mcmc.MCMCStrategy.add), so a
+        """Log the first refine step whose growth MCMC held back (mcmc.MCMCStrategy.step), so a
         model that ends below its budget says why; later ones are not logged."""
         stats = self.strategy.last_stats
         if not stats.get("growth_held") or any(e["event"] == "growth_held" for e in self.events):
