@@ -27,9 +27,10 @@ from .progress import training_progress
 @click.option("--primitive", type=click.Choice(["volumetric", "planar"]), help="Primitive type. [default: volumetric]")
 @click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend. [default: auto]")
 @click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
-@click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: start at N/4 (N: 100000) and double "
-              "while held-out train views gain > 0.5 dB per doubling (3 stages: at most N), then train a fresh model "
-              "at the chosen budget on every train view (as --budget N would) and prune. "
+@click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: start at N/2 (N: 100000) and double "
+              "while held-out train views gain > 0.5 dB per doubling (3 stages: at most 2N), then train a fresh model "
+              "at the chosen budget on every train view (as --budget N would); once growth ends, keep the fewest "
+              "most-contributing primitives that hold the train-view PSNR within 0.2 dB, fine-tune them, and prune. "
               "[default: 100000]")
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
@@ -124,9 +125,12 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         rep = json.loads((run / "fit.json").read_text()).get("auto_budget") or {}
         stages = ", ".join(f"{st['budget']:,}: {st['holdout_psnr']:.2f} dB" for st in rep.get("stages", []))
         prune = rep.get("prune") or {}
+        comp = rep.get("compact")
+        compact = (f"; compacted {comp['num_primitives_before']:,} -> {comp['num_primitives_after']:,} "
+                   f"(train views {comp['train_psnr_before']:.2f} -> {comp['train_psnr_after']:.2f} dB)" if comp else "")
         refit = (f"; refit at it from the start on every train view (selection took "
                  f"{rep['selection_seconds']:.0f} s)" if rep.get("refit") and rep.get("selection_seconds") else "")
-        console.print(f"auto budget: chose {rep.get('chosen_budget')} ({stages}){refit}; "
+        console.print(f"auto budget: chose {rep.get('chosen_budget')} ({stages}){refit}{compact}; "
                       f"pruned {prune.get('pruned', 0)} primitives")
     console.print(f"wrote {run / 'model.pt'}")
     if stop["signal"] == signal.SIGINT:

@@ -8,7 +8,8 @@ import torch
 
 from splatk.data import load_scene
 from splatk.data.synthetic import make_demo_scene
-from splatk.stages.autobudget import AutoBudget, AutoBudgetConfig, blending_weights, split_holdout
+from splatk.stages.autobudget import (AutoBudget, AutoBudgetConfig, blending_weights, compaction_cut,
+                                     render_psnr, split_holdout)
 from splatk.stages.fit import FitConfig, build_model, run_fit
 from splatk.train.trainer import TrainConfig, Trainer
 from splatk_cli.fit import build_fit_config
@@ -71,6 +72,64 @@ def test_prune_drops_invisible_and_transparent_primitives(scene):
     assert not (tr.model.prims["means"] > 1e3).any()
     tr.cfg.iters = tr.it + 2
     tr.run()  # the optimiser still lines up with the pruned tensors
+
+
+def _trained(scene, budget=120, iters=60):
+    sc = load_scene(scene)
+    cfg = FitConfig(sh_degree=1, backend="torch", train=TrainConfig(iters=iters, budget=budget, init="random",
+                                                                     backend="torch", refine_every=5))
+    tr = Trainer(sc, build_model(sc, cfg), cfg.train)
+    tr.run()
+    return sc, tr
+
+
+@pytest.mark.parametrize("tolerance", [0.05, 0.5])
+def test_compaction_keeps_the_fewest_top_contributors_within_the_tolerance(scene, tolerance):
+    """The cut keeps the most contributing primitives, as few as hold the PSNR on the views within
+    the tolerance: rendering the kept ones gives a drop within it, and one grid step fewer does not."""
+    sc, tr = _trained(scene)
+    model, bg = tr.model, torch.tensor(sc.background, dtype=torch.float32)
+    n, steps, min_keep = model.num_primitives, 10, 0.2
+    keep, rep = compaction_cut(model, sc.train, bg, tolerance, min_keep, "torch", steps=steps)
+    assert model.num_primitives == n  # the model itself is untouched
+    base = render_psnr(model, sc.train, bg, "torch")
+    assert rep["train_psnr_before"] == pytest.approx(base)
+    k = int(keep.sum())
+    assert k == rep["num_primitives_after"] and k < n  # random init leaves dead weight
+    w = blending_weights(model, sc.train, "torch")
+    assert w[keep].min() >= w[~keep].max()  # the kept ones are the top contributors
+
+    def psnr_of(mask):
+        full = {key: v.data for key, v in model.prims.items()}
+        for key, v in model.prims.items():
+            v.data = full[key][mask]
+        try:
+            return render_psnr(model, sc.train, bg, "torch")
+        finally:
+            for key, v in model.prims.items():
+                v.data = full[key]
+
+    assert base - psnr_of(keep) <= tolerance + 1e-6
+    grid = [min_keep + (1 - min_keep) * i / steps for i in range(steps + 1)]
+    i = min(range(len(grid)), key=lambda j: abs(grid[j] * n - k))
+    if i > 0:  # one step fewer breaks the tolerance
+        fewer = torch.zeros(n, dtype=torch.bool)
+        fewer[torch.argsort(w, descending=True)[:int(round(n * grid[i - 1]))]] = True
+        assert base - psnr_of(fewer) > tolerance
+
+
+def test_fit_compacts_once_growth_ends_and_fine_tunes_without_regrowing(scene, tmp_path):
+    cfg = _cfg(threshold=100.0)  # chooses 50
+    cfg.auto_budget.compact_tolerance_db = 1.0
+    run = run_fit(scene, tmp_path / "run", cfg)
+    summary = json.loads((run / "fit.json").read_text())
+    comp = summary["auto_budget"]["compact"]
+    assert comp["iteration"] == 84  # the first iteration at refine_stop (25/30 of 100)
+    assert comp["num_primitives_after"] < comp["num_primitives_before"] <= 50
+    assert comp["train_psnr_before"] - comp["train_psnr_after"] <= 1.0
+    assert summary["auto_budget"]["prune"]["num_primitives_before"] == comp["num_primitives_after"]
+    assert summary["num_primitives"] <= comp["num_primitives_after"]
+    assert any(e["event"] == "compacted" for e in summary["events"])
 
 
 def test_holdout_never_takes_all_views():
@@ -168,6 +227,7 @@ def test_refit_is_the_fixed_run_at_the_chosen_budget(scene, tmp_path):
     exactly as `--budget N` would: same parameters, the selection's time added to the run's."""
     cfg = _cfg(threshold=100.0)  # chooses 50
     cfg.auto_budget.prune_opacity, cfg.auto_budget.prune_weight = 0.0, -1.0  # prune nothing
+    cfg.auto_budget.compact = False
     auto_run = run_fit(scene, tmp_path / "auto", cfg)
     rep = json.loads((auto_run / "fit.json").read_text())
     assert rep["auto_budget"]["chosen_budget"] == 50 and rep["auto_budget"]["refit"]
