@@ -307,3 +307,29 @@ def test_resume_inside_a_short_run_gives_the_uninterrupted_result(scene, tmp_pat
     b = torch.load(whole_dir / "model.pt", weights_only=False)["prims"]
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6)
+
+
+def test_resume_after_the_compaction_gives_the_uninterrupted_result(scene, tmp_path):
+    """A run stopped during the fine-tuning that follows the compaction resumes with the
+    compacted model (not compacting again) and ends where the uninterrupted run does."""
+    cfg = _cfg(threshold=100.0)
+    cfg.auto_budget.compact_tolerance_db = 1.0
+    whole_run = run_fit(scene, tmp_path / "whole", cfg)
+    whole = torch.load(whole_run / "model.pt", weights_only=False)
+    calls = {"n": 0}
+
+    def stop():  # the selection takes 60 checks; the refit compacts at its iteration 84
+        calls["n"] += 1
+        return calls["n"] >= 150
+
+    part = tmp_path / "part"
+    run_fit(scene, part, cfg, should_stop=stop)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)
+    assert state["auto_budget"]["compact_report"] is not None and 84 <= state["trainer"]["it"] < 100
+    run_fit(scene, part, cfg, resume=True)
+    resumed = torch.load(part / "model.pt", weights_only=False)
+    for key in whole["prims"]:
+        torch.testing.assert_close(resumed["prims"][key], whole["prims"][key], rtol=1e-5, atol=1e-6)
+    a = json.loads((part / "fit.json").read_text())["auto_budget"]["compact"]
+    b = json.loads((whole_run / "fit.json").read_text())["auto_budget"]["compact"]
+    assert a == b
