@@ -75,6 +75,7 @@ def scene_row(scene: Path, out: Path, args) -> dict:
     # a 4x run past --max-ref-budget is not run (fox at 800k would take about 40 minutes on one
     # core); its row says so and leaves the PSNR target unjudged
     ref = None if args.max_ref_budget and 4 * chosen > args.max_ref_budget else bench(scene, out, str(4 * chosen), args)
+    compact = report.get("compact")
     per_prim = auto["footprint_mb"] / max(1, auto["num_primitives"])
     default_mb = DEFAULT_BUDGET * per_prim
     row = {
@@ -82,9 +83,8 @@ def scene_row(scene: Path, out: Path, args) -> dict:
         "stopped_because": report["stopped_because"],
         "stages": [{k: s.get(k) for k in ("budget", "num_primitives", "holdout_psnr", "control_psnr", "gain_db")}
                    for s in report["stages"]],
-        "compact": {k: (report.get("compact") or {}).get(k) for k in
-                    ("num_primitives_before", "num_primitives_after", "train_psnr_before", "train_psnr_after")}
-        if report.get("compact") else None,
+        "compact": compact and {k: compact[k] for k in ("num_primitives_before", "num_primitives_after",
+                                                          "train_psnr_before", "train_psnr_after")},
         "auto_psnr": auto["psnr"], "auto_footprint_mb": auto["footprint_mb"],
         "auto_train_seconds": auto["train_seconds"], "comparison_seconds": report.get("comparison_seconds"),
         "x4_budget": 4 * chosen, "x4_psnr": ref and ref["psnr"], "x4_footprint_mb": ref and ref["footprint_mb"],

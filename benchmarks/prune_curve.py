@@ -19,7 +19,7 @@ import torch
 
 from splatk.data import load_scene
 from splatk.models.io import load_model
-from splatk.stages.autobudget import blending_weights, render_psnr
+from splatk.stages.autobudget import blending_weights, render_psnr_keeping
 
 
 def prune_curve(run: Path, fractions: list[float]) -> dict:
@@ -30,15 +30,12 @@ def prune_curve(run: Path, fractions: list[float]) -> dict:
     weights = blending_weights(model, scene.train)
     order = torch.argsort(weights, descending=True)
     share = torch.cumsum(weights[order], 0) / weights.sum().clamp_min(1e-12)
-    full = {k: v.detach().clone() for k, v in model.prims.items()}
     n, rows = weights.numel(), []
     for frac in fractions:
         k = max(1, int(n * frac))
-        for name, p in model.prims.items():
-            p.data = full[name][order[:k]].clone()
         rows.append({"keep_fraction": frac, "num_primitives": k, "weight_share": float(share[k - 1]),
-                     "train_psnr": render_psnr(model, scene.train, bg),
-                     "test_psnr": render_psnr(model, scene.test, bg)})
+                     "train_psnr": render_psnr_keeping(model, order[:k], scene.train, bg),
+                     "test_psnr": render_psnr_keeping(model, order[:k], scene.test, bg)})
     return {"run": str(run), "scene": meta["scene"], "num_primitives": n, "rows": rows}
 
 

@@ -169,6 +169,22 @@ def blending_weights(model, cams: list[Camera], backend: str = "auto") -> torch.
     return total
 
 
+@torch.no_grad()
+def render_psnr_keeping(model, rows: torch.Tensor, cams: list[Camera], background,
+                        backend: str = "auto") -> float | None:
+    """:func:`render_psnr` of ``model`` with only the primitives ``rows`` (indices); the model
+    is left as it was."""
+    full = {k: v.data for k, v in model.prims.items()}
+    rows = rows.to(next(iter(full.values())).device)
+    try:
+        for name, p in model.prims.items():
+            p.data = full[name][rows]
+        return render_psnr(model, cams, background, backend)
+    finally:
+        for name, p in model.prims.items():
+            p.data = full[name]
+
+
 def compaction_cut(model, cams: list[Camera], background, tolerance_db: float, min_keep: float,
                    backend: str = "auto", steps: int = 20) -> tuple[torch.Tensor, dict]:
     """Which primitives to keep: the fewest of the most contributing (blending weight summed over
@@ -178,17 +194,9 @@ def compaction_cut(model, cams: list[Camera], background, tolerance_db: float, m
     weights = blending_weights(model, cams, backend)
     order = torch.argsort(weights, descending=True)
     n = weights.numel()
-    full = {k: v.data for k, v in model.prims.items()}
 
     def psnr_keeping(k: int) -> float:
-        idx = order[:k].to(next(iter(full.values())).device)
-        try:
-            for name, p in model.prims.items():
-                p.data = full[name][idx]
-            return render_psnr(model, cams, background, backend)
-        finally:
-            for name, p in model.prims.items():
-                p.data = full[name]
+        return render_psnr_keeping(model, order[:k], cams, background, backend)
 
     base = render_psnr(model, cams, background, backend)
     fractions = [min_keep + (1.0 - min_keep) * i / steps for i in range(steps + 1)]
@@ -518,10 +526,14 @@ class AutoBudget:
             trainer.elapsed = elapsed
         trainer._snapshot = self.snapshot  # a NaN rollback must not return to the discarded model
 
+    def _every_train_view(self, trainer: Trainer, holdout: list[Camera]) -> list[Camera]:
+        """The train views, held-out ones included (the refit trains on all of them already)."""
+        return trainer.scene.train if self.holdout_returned or self.refitting else trainer.scene.train + holdout
+
     def compact(self, trainer: Trainer, holdout: list[Camera]) -> dict:
         """Keep the fewest most-contributing primitives within the train-view PSNR tolerance
         (:func:`compaction_cut`); MCMC's cap follows, so it never grows them back."""
-        cams = trainer.scene.train if self.holdout_returned or self.refitting else trainer.scene.train + holdout
+        cams = self._every_train_view(trainer, holdout)
         keep, report = compaction_cut(trainer.model, cams, trainer.background.cpu(), self.cfg.compact_tolerance_db,
                                       self.cfg.compact_min_keep, trainer.cfg.backend)
         if not bool(keep.all()):
@@ -539,8 +551,7 @@ class AutoBudget:
     def prune(self, trainer: Trainer, holdout: list[Camera]) -> dict:
         model, backend = trainer.model, trainer.cfg.backend
         bg = trainer.background.cpu()
-        # the refit trains on every view already; otherwise the held-out ones count too
-        cams = trainer.scene.train if self.holdout_returned or self.refitting else trainer.scene.train + holdout
+        cams = self._every_train_view(trainer, holdout)
         before = render_psnr(model, holdout, bg, backend)
         weights = blending_weights(model, cams, backend)
         with torch.no_grad():
