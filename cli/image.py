@@ -40,11 +40,13 @@ _D = ImageFitConfig()
 @click.option("--exact", is_flag=True, help="Learned kernel: run the decoder per pixel (slow reference).")
 @click.option("--backend", type=click.Choice(BACKENDS), default=_D.backend, show_default=True,
               help="Renderer: native cpu (OpenMP), torch (reference, any device), or auto (cpu when it builds).")
+@click.option("--device", default=_D.device, show_default=True,
+              help="Torch device to train on, e.g. cpu or cuda (anything but cpu renders with torch).")
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing result in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
-            exact, backend, no_lpips, overwrite, quiet):
+            exact, backend, device, no_lpips, overwrite, quiet):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
     The image is the plain sum of the splats (GaussianImage style); see
@@ -62,7 +64,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
         raise click.BadParameter(str(e), param_hint="--budget-bytes") from None
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
-                         shapes=shapes, backend=backend, lpips=not no_lpips)
+                         shapes=shapes, backend=backend, device=device, lpips=not no_lpips)
     console = Console(stderr=True)
     progress = None if quiet else Progress(
         TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),

@@ -290,6 +290,18 @@ def test_disk_full_while_checkpointing(demo, tmp_path, monkeypatch):
 # ---------------------------------------------------------------------------------------------- other commands
 
 
+def test_a_device_this_machine_lacks(demo, old_run, tmp_path):
+    """fit, eval and image refuse a missing device in one line, before any work."""
+    bad = f"cuda:{torch.cuda.device_count()}"  # one past the last GPU, or CUDA absent altogether
+    expect_error(fit(demo, tmp_path / "run", "--device", bad), "--device", "--device cpu")
+    assert not (tmp_path / "run" / "checkpoints").exists()
+    expect_error(["eval", old_run, "--device", bad], "--device", "--device cpu")
+    photo = next((demo / "images").glob("*.png")) if (demo / "images").is_dir() else next(demo.rglob("*.png"))
+    expect_error(["image", photo, "--out", tmp_path / "img", "--device", "gpu0", "-q"], "--device", "cuda")
+    expect_error(["image", photo, "--out", tmp_path / "img", "--device", "meta", "--backend", "cpu", "-q"],
+                 "--device", "--backend torch")
+
+
 def test_eval_and_export_of_a_missing_run(tmp_path):
     expect_error(["eval", tmp_path / "nope", "--backend", "torch"], "model.pt", "splatk fit")
     expect_error(["export", tmp_path / "nope", "--format", "ply", "--out", tmp_path / "m.ply"], "model.pt")

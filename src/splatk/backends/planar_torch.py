@@ -185,8 +185,9 @@ def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
         kernel = profile_function(kernel)
     dtype = colors.dtype
     order, M = planar_visible(means, quats, scales, viewmat, K)
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype) + 0.5,
-                            torch.arange(width, dtype=means.dtype) + 0.5, indexing="ij")
+    dev = means.device
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype, device=dev) + 0.5,
+                            torch.arange(width, dtype=means.dtype, device=dev) + 0.5, indexing="ij")
     pix = torch.stack([xs, ys], -1).reshape(-1, 2)  # [HW, 2]
     hw, m = pix.shape[0], order.numel()
     if hw * m > MAX_DENSE_PAIRS:
@@ -195,11 +196,11 @@ def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
                          "backend 'cpu' (the native rasteriser)")
     c = colors.shape[-1]
     if m == 0:
-        out = torch.zeros(hw, c, dtype=dtype)
-        t_final = torch.ones(hw, 1, dtype=dtype)
+        out = torch.zeros(hw, c, dtype=dtype, device=dev)
+        t_final = torch.ones(hw, 1, dtype=dtype, device=dev)
     else:
         pair_pix = pix[:, None, :].expand(hw, m, 2).reshape(-1, 2)
-        pair_idx = torch.arange(m).repeat(hw)
+        pair_idx = torch.arange(m, device=dev).repeat(hw)
         uv = ray_splat_uv(M[pair_idx], pair_pix) / 3.0  # 3-sigma extent -> unit disk
         k = kernel(uv, order[pair_idx]).reshape(hw, m)
         alpha = (opacities[order][None, :] * k).clamp(max=ALPHA_MAX)

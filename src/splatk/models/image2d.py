@@ -242,9 +242,10 @@ class Splats2D(nn.Module):
         trained parameter and ``latents`` is unused."""
         if self.kernel != "learned" or not self.shapes:
             raise ValueError("quantize_shapes needs the learned kernel with shapes > 0")
-        centres, labels = kmeans(self.latents.detach(), self.shapes, generator)
-        self.palette = nn.Parameter(centres.clone())
-        self.shape_index = labels
+        # k-means on the CPU: the seeded generator is a CPU one, whatever the model's device
+        centres, labels = kmeans(self.latents.detach().cpu(), self.shapes, generator)
+        self.palette = nn.Parameter(centres.to(self.latents.device))
+        self.shape_index = labels.to(self.latents.device)
 
     def splat_latents(self, idx: Tensor | None = None) -> Tensor:
         """[N or P, L] the latent each splat draws with (its palette entry once quantized)."""

@@ -15,6 +15,7 @@ from typing import Callable
 import torch
 
 from ..data import load_scene
+from ..device import resolve_device
 from ..errors import InputError
 from ..metrics import compute_metrics
 from ..models.io import load_model
@@ -28,10 +29,13 @@ def run_eval(
     scene_path: str | Path | None = None,
     split: str = "test",
     save_renders: bool = False,
+    device: str = "cpu",
     on_view: Callable[[int, int], None] | None = None,
 ) -> dict:
     run = Path(run)
+    dev = resolve_device(device, backend)
     model, meta = load_model(run / "model.pt")
+    model = model.to(dev)
     scene_path = scene_path or meta.get("scene")
     if not scene_path or not Path(scene_path).exists():
         raise InputError(scene_path or run, "scene folder of this run not found", "pass --scene")
@@ -41,7 +45,7 @@ def run_eval(
     cams = scene.test if split == "test" else scene.train
     if not cams:
         raise InputError(scene_path, f"the scene has no {split} views")
-    bg = torch.tensor(scene.background, dtype=torch.float32)
+    bg = torch.tensor(scene.background, dtype=torch.float32, device=dev)
     per_view, times, warnings = [], [], []
     render_dir = run / "renders" / split
     if save_renders:
@@ -51,15 +55,17 @@ def run_eval(
         for i, cam in enumerate(cams):
             t0 = time.perf_counter()
             out = model.render(cam, bg, backend=backend)
+            if dev.type == "cuda":  # the render is asynchronous there
+                torch.cuda.synchronize(dev)
             times.append((time.perf_counter() - t0) * 1000)
             img = out.image.clamp(0, 1)
-            m = compute_metrics(img, cam.image_float(), metrics, lpips_net=lpips_net)
+            m = compute_metrics(img, cam.image_float(dev), metrics, lpips_net=lpips_net)
             warnings += m.pop("warnings", [])
             per_view.append({"view": cam.name, **m})
             if save_renders:
                 from .export import write_png
 
-                write_png(render_dir / f"{Path(cam.name).stem}.png", img)
+                write_png(render_dir / f"{Path(cam.name).stem}.png", img.cpu())
             if on_view:
                 on_view(i + 1, len(cams))
     keys = [k for k in metrics if all(v.get(k) is not None for v in per_view)]
@@ -77,6 +83,7 @@ def run_eval(
         "render_ms": statistics.median(times),
         "render_ms_mean": sum(times) / len(times),
         "backend": backend,
+        "device": str(dev),
         "threads": torch.get_num_threads(),
         "lpips_net": lpips_net if "lpips" in metrics else None,
         "kernel": meta["spec"]["kernel"],

@@ -26,6 +26,7 @@ import yaml
 from ..data import load_scene
 from ..errors import InputError
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
+from ..device import resolve_device
 from ..kernels import KERNELS
 from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
@@ -319,6 +320,7 @@ def run_fit(
         scene_path, cfg, state = load_resume_state(out)
     else:
         check_run_dir(out, overwrite)  # refuse early; replace only once the inputs checked out
+    resolve_device(cfg.train.device, cfg.train.backend)  # what the trainer will use
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every,

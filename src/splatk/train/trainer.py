@@ -418,6 +418,8 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "numpy_rng": np.random.get_state(),
             "python_rng": random.getstate(),
+            # draws on a GPU without a generator of ours (torch's default one there)
+            "cuda_rng": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None,
             "config": asdict(self.cfg),
         }
 
@@ -440,9 +442,13 @@ class Trainer:
         self.opt.load_state_dict(copy.deepcopy(sd["opt"]))
         if self.net_opt is not None and sd.get("net_opt") is not None:
             self.net_opt.load_state_dict(copy.deepcopy(sd["net_opt"]))
-        self.view_gen.set_state(sd["view_gen"])
-        self.mcmc_gen.set_state(sd["mcmc_gen"])
+        # generator states are CPU byte tensors whatever the device (a checkpoint loaded with
+        # map_location="cuda" moves them there)
+        self.view_gen.set_state(sd["view_gen"].cpu())
+        self.mcmc_gen.set_state(sd["mcmc_gen"].cpu())
         self._view_queue = list(sd["view_queue"])
-        torch.set_rng_state(sd["torch_rng"])
+        torch.set_rng_state(sd["torch_rng"].cpu())
+        if sd.get("cuda_rng") is not None and self.device.type == "cuda":
+            torch.cuda.set_rng_state(sd["cuda_rng"].cpu(), self.device)
         np.random.set_state(sd["numpy_rng"])
         random.setstate(sd["python_rng"])
