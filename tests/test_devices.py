@@ -115,6 +115,7 @@ def test_fit_eval_and_resume_on_cuda(primitive, kernel, tmp_path):
     gpu = run_eval(run, ("psnr", "ssim"), device="cuda")
     cpu = run_eval(run, ("psnr", "ssim"), device="cpu", backend="torch")
     assert gpu["device"].startswith("cuda") and cpu["device"] == "cpu"
+    assert gpu["backend"] == "torch"  # what "auto" resolved to off the CPU
     assert gpu["mean"]["psnr"] > summary["initial_psnr"] + 3.0, (summary["initial_psnr"], gpu["mean"])
     assert abs(gpu["mean"]["psnr"] - cpu["mean"]["psnr"]) < 1e-2
     assert abs(gpu["mean"]["ssim"] - cpu["mean"]["ssim"]) < 1e-4

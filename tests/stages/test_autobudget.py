@@ -23,7 +23,8 @@ def scene(tmp_path_factory):
 def _cfg(threshold: float) -> FitConfig:
     # base 400 -> stages 50, 100, 200, 400; 20 iterations each, growing 5% per iteration
     # (refine_every 1) so every doubling can complete inside its stage
-    auto = AutoBudgetConfig(start_fraction=0.125, max_factor=1.0, threshold_db=threshold, stage_share=0.2)
+    auto = AutoBudgetConfig(start_fraction=0.125, max_factor=1.0, threshold_db=threshold, stage_share=0.2,
+                            selection="stages")
     train = TrainConfig(iters=100, budget=400, init="random", backend="torch", refine_every=1, refine_start=0)
     return FitConfig(sh_degree=1, backend="torch", threads=1, auto_budget=auto, train=train)
 

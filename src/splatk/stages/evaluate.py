@@ -14,6 +14,7 @@ from typing import Callable
 
 import torch
 
+from ..backends import resolve_backend
 from ..data import load_scene
 from ..device import resolve_device
 from ..errors import InputError
@@ -82,7 +83,7 @@ def run_eval(
         "footprint_mb": model.footprint_bytes() / 2**20,
         "render_ms": statistics.median(times),
         "render_ms_mean": sum(times) / len(times),
-        "backend": backend,
+        "backend": resolve_backend(backend, dev),  # what rendered, not "auto"
         "device": str(dev),
         "threads": torch.get_num_threads(),
         "lpips_net": lpips_net if "lpips" in metrics else None,
