@@ -25,7 +25,7 @@ from splatk.stages.autobudget import AutoBudgetConfig
 from splatk.stages.evaluate import run_eval
 from splatk.stages.fit import FitConfig, run_fit, scale_schedules_to_run
 from splatk.stages.image_fit import ImageFitConfig, fit_image
-from splatk.train.trainer import TrainConfig, Trainer
+from splatk.train.trainer import TrainConfig
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
 
@@ -123,7 +123,7 @@ def test_fit_eval_and_resume_on_cuda(primitive, kernel, tmp_path):
 
 @cuda
 def test_budget_auto_on_cuda(tmp_path):
-    """--budget auto's stages, held-out renders, compaction and prune run on the GPU."""
+    """--budget auto's short runs, held-out renders, compaction and prune run on the GPU."""
     scene = make_demo_scene(tmp_path / "demo", num_views=8, size=32)
     auto = AutoBudgetConfig(start_fraction=0.125, max_factor=1.0, threshold_db=-100.0, stage_share=0.2)
     train = TrainConfig(iters=100, budget=400, init="random", refine_every=1, refine_start=0, device="cuda")
@@ -143,7 +143,7 @@ def test_image_fit_on_cuda_matches_the_cpu_torch_run(kernel):
     for dev in ("cpu", "cuda"):
         cfg = ImageFitConfig(kernel=kernel, budget_bytes=4096, iters=60, backend="torch", device=dev,
                              shapes=8, shape_start=0.5, lpips=False)
-        model, info = fit_image(target, cfg)
+        model, _ = fit_image(target, cfg)
         assert next(model.parameters()).device.type == "cpu"  # handed back for saving
         with torch.no_grad():
             fits[dev] = float(((model.render().clamp(0, 1) - target) ** 2).mean())
