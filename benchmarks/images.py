@@ -1,6 +1,6 @@
 """Image representation benchmark: learned vs gaussian vs gabor 2D splats at two byte budgets.
 
-    python benchmarks/images.py [--downscale 4] [--iters 300] [--budgets 8192,24576]
+    python benchmarks/images.py [--downscale 4] [--iters 2000] [--budgets 8192,24576] [--seeds 0,1]
                                 [--images kodim01,kodim05] [--latent-dim 2] [--jobs 2] [--out PATH]
 
 Fits every photo in ../shared/data/images with every kernel at every budget (`splatk image`'s
@@ -9,11 +9,12 @@ decoder, 484 bytes at latent size 2, paid out of the same budget), one process p
 torch.set_num_threads(1), up to --jobs at a time. Prints a table of PSNR / SSIM / LPIPS per
 (budget, kernel), averaged over the photos, the per-photo PSNR, and the issue's targets
 (learned >= gaussian + 0.5 dB and >= gabor on average); writes every fit's metrics to
-benchmarks/results/images.json. ``--kernels ...,learned-samecount`` adds the learned kernel at the
+benchmarks/results/images.json. With several ``--seeds`` every mean is over photos and seeds.
+``learned`` is `splatk image --kernel learned` as it ships (a palette of shapes, see ImageFitConfig).
+``learned-shapesK`` fixes the palette at K shapes (``learned-shapes0``: a latent per splat, no
+palette). ``--kernels ...,learned-samecount`` adds the learned kernel with a latent per splat at the
 Gaussian's primitive count (so with more bytes): what its shape is worth per primitive, before
-its latent floats are paid for. ``learned-shapesK`` (e.g. ``learned-shapes64``) is the learned kernel
-with a palette of K shared shapes and a one-byte index per splat (`splatk image --shapes K`;
-`splatk image` defaults to 64). ``learned`` here is always a latent per splat (``--shapes 0``).
+its latent floats are paid for.
 """
 from __future__ import annotations
 
@@ -38,14 +39,14 @@ import json, sys, torch
 torch.set_num_threads(1)
 from pathlib import Path
 from splatk.stages.image_fit import ImageFitConfig, run_image_fit
-from splatk.models.image2d import floats_per_primitive, network_bytes, num_primitives
+from splatk.models.image2d import bytes_per_primitive, network_bytes, num_primitives
 a = json.loads(sys.argv[1])
-kernel, budget, shapes = a["kernel"], a["budget"], 0
-if kernel.startswith("learned-shapes"):  # learned-shapesK: a palette of K shapes
+kernel, budget, shapes = a["kernel"], a["budget"], ImageFitConfig.shapes
+if kernel.startswith("learned-shapes"):  # learned-shapesK: a palette of K shapes (0: a latent per splat)
     kernel, shapes = "learned", int(kernel[len("learned-shapes"):])
 if kernel == "learned-samecount":  # the Gaussian's primitive count, so more bytes: the shape's own gain
-    kernel = "learned"
-    budget = (num_primitives("gaussian", budget) * 4 * floats_per_primitive("learned", a["latent_dim"])
+    kernel, shapes = "learned", 0
+    budget = (num_primitives("gaussian", budget) * bytes_per_primitive("learned", a["latent_dim"])
               + network_bytes("learned", a["latent_dim"]))
 cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget, iters=a["iters"], seed=a["seed"],
                      downscale=a["downscale"], latent_dim=a["latent_dim"], shapes=shapes)
@@ -73,11 +74,11 @@ def mean(xs):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--downscale", type=int, default=4)
-    ap.add_argument("--iters", type=int, default=300)
+    ap.add_argument("--iters", type=int, default=2000)
     ap.add_argument("--budgets", default="8192,24576", help="comma-separated byte budgets")
     ap.add_argument("--images", default="", help="comma-separated stems (default: all six)")
     ap.add_argument("--kernels", default=",".join(KERNELS))
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds; means are over photos and seeds")
     ap.add_argument("--latent-dim", type=int, default=None,
                     help="learned kernel's latent floats per primitive (default: ImageFitConfig's)")
     ap.add_argument("--jobs", type=int, default=1, help="fits run at once (1 thread each)")
@@ -92,21 +93,24 @@ def main() -> None:
         photos = [p for p in photos if p.stem in want]
     budgets = [int(b) for b in a.budgets.split(",")]
     kernels = a.kernels.split(",")
+    seeds = [int(x) for x in a.seeds.split(",")]
     t0 = time.time()
     with tempfile.TemporaryDirectory() as tmp:
-        jobs = [{"photo": str(p), "kernel": k, "budget": b, "iters": a.iters, "seed": a.seed,
-                 "downscale": a.downscale, "latent_dim": a.latent_dim, "out": f"{tmp}/{p.stem}_{k}_{b}"}
-                for b in budgets for p in photos for k in kernels]
+        jobs = [{"photo": str(p), "kernel": k, "budget": b, "iters": a.iters, "seed": seed,
+                 "downscale": a.downscale, "latent_dim": a.latent_dim,
+                 "out": f"{tmp}/{p.stem}_{k}_{b}_{seed}"}
+                for seed in seeds for b in budgets for p in photos for k in kernels]
         with ThreadPoolExecutor(a.jobs) as pool:
             rows = []
             for r in pool.map(fit_one, jobs):
                 r.pop("out", None)
                 rows.append(r)
                 tag = "ERROR" if "error" in r else f"{r['psnr']:.2f} dB {r['seconds']:.0f} s"
-                print(f"  {Path(r['photo']).stem} {r['kernel']:16s} {r['budget']:6d} B: {tag}", flush=True)
+                print(f"  {Path(r['photo']).stem} {r['kernel']:16s} {r['budget']:6d} B seed {r['seed']}: {tag}",
+                      flush=True)
     wall = time.time() - t0
     ok = [r for r in rows if "error" not in r]
-    print(f"\n{len(photos)} photos, downscale {a.downscale}, {a.iters} iterations, seed {a.seed}, "
+    print(f"\n{len(photos)} photos, downscale {a.downscale}, {a.iters} iterations, seeds {a.seeds}, "
           f"learned latent {a.latent_dim}, "
           f"wall {wall / 60:.1f} min\n")
     print(f"{'budget':>7} {'kernel':16} {'prims':>6} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'s/fit':>6}")
@@ -135,14 +139,20 @@ def main() -> None:
         if g and same:
             print(f"{'':7} learned at the gaussian's count ({same['bytes'] / b:.2f}x the bytes) - gaussian "
                   f"{same['psnr'] - g['psnr']:+.2f} dB")
-    print("\nper photo PSNR:")
+    print(f"\nper photo PSNR{' (mean over seeds)' if len(seeds) > 1 else ''}:")
+    wins = {b: 0 for b in budgets}
     for b in budgets:
         for p in photos:
-            cells = {r["kernel"]: r["psnr"] for r in ok if r["budget"] == b and r["photo"] == p.stem}
-            print(f"{b:7d} {p.stem:8} " + " ".join(f"{k} {cells.get(k, float('nan')):6.2f}" for k in kernels))
+            cells = {k: mean([r["psnr"] for r in ok if r["budget"] == b and r["photo"] == p.stem
+                              and r["kernel"] == k]) for k in kernels}
+            print(f"{b:7d} {p.stem:8} " + " ".join(f"{k} {cells[k]:6.2f}" for k in kernels))
+            wins[b] += cells.get("learned", float("nan")) > cells.get("gaussian", float("nan"))
+    if "learned" in kernels and "gaussian" in kernels:
+        print("photos where learned beats gaussian: "
+              + ", ".join(f"{wins[b]} of {len(photos)} at {b} B" for b in budgets))
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps({
-        "settings": {"downscale": a.downscale, "iters": a.iters, "budgets": budgets, "seed": a.seed,
+        "settings": {"downscale": a.downscale, "iters": a.iters, "budgets": budgets, "seeds": seeds,
                      "latent_dim": a.latent_dim,
                      "images": [p.stem for p in photos], "kernels": kernels, "jobs": a.jobs,
                      "threads_per_fit": 1, "wall_seconds": wall, "machine": platform.platform(),

@@ -35,7 +35,7 @@ def test_table_exact_at_nodes():
     uv = torch.stack([uu, vv], -1).reshape(-1, 2)
     for i in range(m.n):
         idx = torch.full((uv.shape[0],), i, dtype=torch.long)
-        exact = m.decoder(uv, m.latents[idx])
+        exact = m.decoder(m._turned(uv, m.turns()[idx]), m.latents[idx])
         # float32 round-off only
         torch.testing.assert_close(bilinear(table, idx, uv), exact, atol=1e-5, rtol=1e-5)
 
@@ -49,7 +49,7 @@ def test_table_vs_exact_bounded(grid):
     gen = torch.Generator().manual_seed(1)
     uv = torch.rand(4000, 2, generator=gen) * 2 - 1
     idx = torch.randint(0, m.n, (4000,), generator=gen)
-    exact = m.decoder(uv, m.latents[idx])
+    exact = m.decoder(m._turned(uv, m.turns()[idx]), m.latents[idx])
     approx = bilinear(table, idx, uv)
     err = (approx - exact).abs().detach()
     spread = float((table.max() - table.min()).detach())
@@ -60,6 +60,32 @@ def test_table_vs_exact_bounded(grid):
     finer.grid = 4 * grid
     err_fine = (bilinear(finer.kernel_table(), idx, uv) - exact).abs()
     assert float(err_fine.mean().detach()) < float(err.mean())  # converges as the grid refines
+
+
+def test_turn_is_one_byte_and_turns_the_shape():
+    """A learned splat's turn is stored in one byte (a multiple of 2 pi / 256), trains through the
+    rounding, and turns the shape: a half turn draws the shape point-mirrored about the mean."""
+    m = _learned(n=1)
+    m.exact = True
+    m.backend = "torch"
+    with torch.no_grad():
+        m.turn.fill_(0.3)
+        m.xy_raw.zero_()  # the splat in the middle of the 16 x 16 image
+        m.chol.copy_(torch.tensor([[2.5, 0.4, 1.5]]))
+    step = 2 * math.pi / 256
+    stored = float(m.turns().detach()[0])
+    assert abs(stored / step - round(stored / step)) < 1e-5 and abs(stored - 0.3) <= step / 2
+    img = m.render()
+    img.sum().backward()
+    assert m.turn.grad is not None and float(m.turn.grad.abs().sum()) > 0
+    with torch.no_grad():
+        # the kernel at (u, v) with a half turn is the kernel at (-u, -v) without it
+        uv = torch.rand(50, 2, generator=torch.Generator().manual_seed(2)) * 1.4 - 0.7
+        idx = torch.zeros(50, dtype=torch.long)
+        k0 = m.kernel_values(-uv, idx)
+        m.turn.add_(math.pi)
+        torch.testing.assert_close(m.kernel_values(uv, idx), k0, atol=1e-5, rtol=1e-4)
+        assert float((k0 - m.kernel_values(-uv, idx)).abs().max()) > 1e-3  # the shape is not symmetric
 
 
 @torch.no_grad()
@@ -77,11 +103,15 @@ def test_render_table_matches_exact_mode():
 def test_bytes_within_budget(kernel, latent_dim, budget):
     n = num_primitives(kernel, budget, latent_dim)
     m = Splats2D(kernel, max(n, 1), 8, 8, latent_dim=latent_dim)
-    per_prim = sum(p.numel() for name, p in m.named_parameters() if not name.startswith("decoder.")) // m.n
-    assert per_prim == floats_per_primitive(kernel, latent_dim)  # every per-primitive parameter is counted
+    # every per-primitive parameter is counted: floats at 4 bytes, the learned kernel's turn at one
+    per_prim = sum(p.numel() for name, p in m.named_parameters()
+                   if not name.startswith("decoder.") and name != "turn") // m.n
+    assert per_prim == floats_per_primitive(kernel, latent_dim)
+    per_bytes = 4 * per_prim + (1 if kernel == "learned" else 0)
+    assert per_bytes == bytes_per_primitive(kernel, latent_dim)
     net = 4 * decoder_floats(latent_dim) if kernel == "learned" else 0  # paid from the same budget
-    assert n * 4 * per_prim + net <= budget < (n + 1) * 4 * per_prim + net
-    assert m.describe_bytes()["bytes"] == m.n * 4 * per_prim + net
+    assert n * per_bytes + net <= budget < (n + 1) * per_bytes + net
+    assert m.describe_bytes()["bytes"] == m.n * per_bytes + net
     if kernel == "learned":
         assert per_prim == 8 + latent_dim
         assert decoder_floats(latent_dim) == sum(p.numel() for p in PlanarDecoder(latent_dim).parameters())
@@ -135,7 +165,8 @@ def test_cli_writes_metrics(tmp_path):
     shapes = ImageFitConfig().shapes
     assert m["shapes"] == shapes > 0
     net = 4 * (decoder_floats() + shapes * LATENT_DIM)
-    assert m["num_primitives"] == (2000 - net) // (4 * 8 + 1) and m["bytes"] <= 2000
+    # a byte for the palette index and one for the turn
+    assert m["num_primitives"] == (2000 - net) // (4 * 8 + 2) and m["bytes"] <= 2000
     assert m["bytes"] == m["primitive_bytes"] + m["network_bytes"]
     assert m["network_bytes"] == net
     assert m["latent_dim"] == LATENT_DIM and m["config"]["latent_dim"] == LATENT_DIM
@@ -159,7 +190,8 @@ def test_cli_latent_dim_recorded(tmp_path):
     assert res.exit_code == 0, res.output
     m = json.loads((out / "metrics.json").read_text())
     assert m["latent_dim"] == 3 and m["config"]["latent_dim"] == 3
-    assert m["bytes_per_primitive"] == 4 * (8 + 3) and m["num_primitives"] == (2000 - 4 * decoder_floats(3)) // 44
+    assert m["bytes_per_primitive"] == 4 * (8 + 3) + 1  # the latent's floats and the turn's byte
+    assert m["num_primitives"] == (2000 - 4 * decoder_floats(3)) // 45
     assert m["network_bytes"] == 4 * decoder_floats(3) and m["network_floats"] == decoder_floats(3)
     assert m["shapes"] == 0
 
@@ -243,7 +275,7 @@ def test_kmeans_finds_separated_clusters():
 def test_palette_bytes_within_budget(shapes, budget):
     n = num_primitives("learned", budget, 2, shapes)
     per = bytes_per_primitive("learned", 2, shapes)
-    assert per == 4 * 8 + 1  # geometry and colour at float32, the palette index in one byte
+    assert per == 4 * 8 + 2  # geometry and colour at float32, the palette index and the turn a byte each
     net = 4 * (decoder_floats(2) + shapes * 2)  # the decoder and the palette, paid once
     assert n * per + net <= budget < (n + 1) * per + net
     m = Splats2D("learned", max(n, 1), 8, 8, shapes=shapes)
@@ -267,7 +299,7 @@ def test_palette_draws_each_splat_with_its_entry():
     g = torch.linspace(-1.0, 1.0, m.grid)
     vv, uu = torch.meshgrid(g, g, indexing="ij")
     uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)
-    ref = m.decoder(uv, lat[:, None, :]).reshape(m.n, m.grid, m.grid)
+    ref = m.decoder(m._turned(uv, m.turns()[:, None]), lat[:, None, :]).reshape(m.n, m.grid, m.grid)
     torch.testing.assert_close(table, ref)
     m.backend = "torch"
     a = m.render()
