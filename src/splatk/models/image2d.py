@@ -34,8 +34,9 @@ Learned-kernel choices (the paper leaves them open for images):
   axis (``u = dx / l11``), so without a turn a shape that is not radially symmetric (an edge, a
   lobe on one side) can point only where the palette happens to hold a copy of it. Measured
   (kodim05 + kodim23, 192 x 128, 8 and 24 KiB, 2000 iterations at the learning rates of before
-  the turn, a latent per splat at the Gaussian's count): +0.89 dB over the Gaussian with the turn, +0.60 without; turning the shape
-  with the ellipse's own axes instead (a rotation-scale covariance) gained next to nothing (+0.63).
+  the turn, a latent per splat at the Gaussian's count): +0.89 dB over the Gaussian with the
+  turn, +0.60 without; turning the shape with the ellipse's own axes instead (a rotation-scale
+  covariance) gained next to nothing (+0.63).
   Training renders the rounded angle and passes the gradient straight through to the float, so
   the image trained is the image stored.
 * Signed output, no sigmoid: the image is a sum, not a composite, so a kernel may have negative
@@ -111,8 +112,8 @@ def bytes_per_primitive(kernel: str, latent_dim: int = LATENT_DIM, shapes: int =
     """float32 parameters, plus a learned kernel's one-byte turn and, with ``shapes``, its
     one-byte palette index."""
     _check_shapes(shapes)
-    small = (1 + (1 if shapes else 0)) if kernel == "learned" else 0
-    return 4 * floats_per_primitive(kernel, latent_dim, shapes) + small
+    byte_fields = (1 + (1 if shapes else 0)) if kernel == "learned" else 0
+    return 4 * floats_per_primitive(kernel, latent_dim, shapes) + byte_fields
 
 
 def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
