@@ -19,6 +19,7 @@ from splatk.stages.image_fit import ImageFitConfig, fit_image
 
 def _learned(n=5, grid=8, seed=0):
     gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)  # the decoder's init draws on the global generator
     m = Splats2D("learned", n, 16, 16, grid=grid, generator=gen)
     with torch.no_grad():  # a non-trivial decoder (the init is the constant 1)
         for p in m.decoder.parameters():
@@ -89,13 +90,20 @@ def test_turn_is_one_byte_and_turns_the_shape():
 
 
 @torch.no_grad()
-def test_render_table_matches_exact_mode():
-    m = _learned(n=6)
-    m.exact = False
-    a = m.render()
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_render_table_matches_exact_mode(seed):
+    """The table render approaches the exact one as the table refines. Over 40 random decoders
+    the 8x8 table's largest pixel error was up to 0.27 of the image's largest value, and a 32x32
+    table cut it to at most 0.42 of the 8x8's."""
+    m = _learned(n=6, seed=seed)
     m.exact = True
-    b = m.render()
-    assert float((a - b).abs().max()) <= 0.1 * float(b.abs().max()) + 1e-6
+    exact = m.render()
+    m.exact = False
+    err8 = float((m.render() - exact).abs().max())
+    m.grid = 32
+    err32 = float((m.render() - exact).abs().max())
+    assert err8 <= 0.3 * float(exact.abs().max()) + 1e-6
+    assert err32 <= 0.5 * err8
 
 
 @pytest.mark.parametrize("kernel,latent_dim", [(k, 2) for k in KERNELS] + [("learned", 0), ("learned", 10)])
