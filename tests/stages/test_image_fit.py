@@ -36,7 +36,7 @@ def test_table_exact_at_nodes():
     uv = torch.stack([uu, vv], -1).reshape(-1, 2)
     for i in range(m.n):
         idx = torch.full((uv.shape[0],), i, dtype=torch.long)
-        exact = m.decoder(m._turned(uv, m.turns()[idx]), m.latents[idx])
+        exact = m.decoder(m.turned_uv(uv, m.turns()[idx]), m.latents[idx])
         # float32 round-off only
         torch.testing.assert_close(bilinear(table, idx, uv), exact, atol=1e-5, rtol=1e-5)
 
@@ -50,7 +50,7 @@ def test_table_vs_exact_bounded(grid):
     gen = torch.Generator().manual_seed(1)
     uv = torch.rand(4000, 2, generator=gen) * 2 - 1
     idx = torch.randint(0, m.n, (4000,), generator=gen)
-    exact = m.decoder(m._turned(uv, m.turns()[idx]), m.latents[idx])
+    exact = m.decoder(m.turned_uv(uv, m.turns()[idx]), m.latents[idx])
     approx = bilinear(table, idx, uv)
     err = (approx - exact).abs().detach()
     spread = float((table.max() - table.min()).detach())
@@ -307,7 +307,7 @@ def test_palette_draws_each_splat_with_its_entry():
     g = torch.linspace(-1.0, 1.0, m.grid)
     vv, uu = torch.meshgrid(g, g, indexing="ij")
     uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)
-    ref = m.decoder(m._turned(uv, m.turns()[:, None]), lat[:, None, :]).reshape(m.n, m.grid, m.grid)
+    ref = m.decoder(m.turned_uv(uv, m.turns()[:, None]), lat[:, None, :]).reshape(m.n, m.grid, m.grid)
     torch.testing.assert_close(table, ref)
     m.backend = "torch"
     a = m.render()

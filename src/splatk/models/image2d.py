@@ -112,8 +112,10 @@ def bytes_per_primitive(kernel: str, latent_dim: int = LATENT_DIM, shapes: int =
     """float32 parameters, plus a learned kernel's one-byte turn and, with ``shapes``, its
     one-byte palette index."""
     _check_shapes(shapes)
-    byte_fields = (1 + (1 if shapes else 0)) if kernel == "learned" else 0
-    return 4 * floats_per_primitive(kernel, latent_dim, shapes) + byte_fields
+    floats = 4 * floats_per_primitive(kernel, latent_dim, shapes)
+    if kernel != "learned":
+        return floats
+    return floats + 1 + (1 if shapes else 0)  # the turn, and the palette index
 
 
 def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
@@ -278,7 +280,7 @@ class Splats2D(nn.Module):
         return self.turn + (stored - self.turn.detach())
 
     @staticmethod
-    def _turned(uv: Tensor, turn: Tensor) -> Tensor:
+    def turned_uv(uv: Tensor, turn: Tensor) -> Tensor:
         """R(turn) uv for uv [..., 2] and turn broadcast against uv[..., 0]."""
         c, s = torch.cos(turn), torch.sin(turn)
         u, v = uv[..., 0], uv[..., 1]
@@ -290,7 +292,7 @@ class Splats2D(nn.Module):
         g = torch.linspace(-1.0, 1.0, self.grid, dtype=self.latents.dtype, device=self.latents.device)
         vv, uu = torch.meshgrid(g, g, indexing="ij")
         uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)  # [1, G*G, 2]
-        turned = self._turned(uv, self.turns()[:, None])  # [N, G*G, 2]
+        turned = self.turned_uv(uv, self.turns()[:, None])  # [N, G*G, 2]
         out = self.decoder(turned, self.splat_latents()[:, None, :])  # [N, G*G]
         return out.reshape(self.n, self.grid, self.grid)
 
@@ -319,7 +321,7 @@ class Splats2D(nn.Module):
             waves = (a * torch.cos(math.pi * f * uv[:, :, None])).sum(-1)  # [P, 2]
             return env * waves[:, 0] * waves[:, 1]
         if self.exact or table is None:
-            return env * self.decoder(self._turned(uv, self.turns()[idx]), self.splat_latents(idx))
+            return env * self.decoder(self.turned_uv(uv, self.turns()[idx]), self.splat_latents(idx))
         return env * bilinear(table, idx, uv)
 
     # ---- rendering ------------------------------------------------------------------------
