@@ -5,7 +5,8 @@
 
 Fits every photo in ../shared/data/images with every kernel at every budget (`splatk image`'s
 stage: float32 bytes of the per-primitive parameters plus, for the learned kernel, its shared
-decoder, 484 bytes at latent size 2, paid out of the same budget), one process per fit with
+decoder and palette at float16, 498 bytes at latent size 2 and 64 shapes, paid out of the same
+budget), one process per fit with
 torch.set_num_threads(1), up to --jobs at a time. Prints a table of PSNR / SSIM / LPIPS per
 (budget, kernel), averaged over the photos, the per-photo PSNR, and the issue's targets
 (learned >= gaussian + 0.5 dB and >= gabor on average); writes every fit's metrics to

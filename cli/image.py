@@ -20,9 +20,9 @@ _D = ImageFitConfig()
 @click.option("--kernel", type=click.Choice(KERNELS), default=_D.kernel, show_default=True,
               help="2D kernel: gaussian (GaussianImage), gabor (Gabor splatting), learned (planar decoder).")
 @click.option("--budget-bytes", default=str(_D.budget_bytes), show_default=True,
-              help="Bytes for all parameters (float32; a learned splat's turn and palette index take a byte "
-                   "each), shared decoder and palette included (24576, 24KB, 1.5MB); sets the number of "
-                   "primitives.")
+              help="Bytes for all parameters (per splat float32; a learned splat's turn and palette index "
+                   "take a byte each), the shared decoder and palette included at float16 (24576, 24KB, "
+                   "1.5MB); sets the number of primitives.")
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True,
               help="Folder for render.png, primitives.png, kernels.png and metrics.json.")
 @click.option("--iters", type=int, default=_D.iters, show_default=True, help="Optimisation steps.")

@@ -12,8 +12,9 @@ from click.testing import CliRunner
 
 from splatk.backends.planar_torch import bilinear
 from splatk.errors import InputError
-from splatk.models.image2d import (KERNELS, LATENT_DIM, PlanarDecoder, Splats2D, bytes_per_primitive,
-                                   decoder_floats, floats_per_primitive, kmeans, num_primitives)
+from splatk.models.image2d import (KERNELS, LATENT_DIM, SHARED_BYTES_PER_FLOAT, SHARED_DTYPE, PlanarDecoder,
+                                   Splats2D, bytes_per_primitive, decoder_floats, floats_per_primitive, kmeans,
+                                   num_primitives)
 from splatk.stages.image_fit import ImageFitConfig, fit_image
 
 
@@ -117,13 +118,14 @@ def test_bytes_within_budget(kernel, latent_dim, budget):
     assert per_prim == floats_per_primitive(kernel, latent_dim)
     per_bytes = 4 * per_prim + (1 if kernel == "learned" else 0)
     assert per_bytes == bytes_per_primitive(kernel, latent_dim)
-    net = 4 * decoder_floats(latent_dim) if kernel == "learned" else 0  # paid from the same budget
+    # the shared decoder is paid from the same budget, at float16
+    net = SHARED_BYTES_PER_FLOAT * decoder_floats(latent_dim) if kernel == "learned" else 0
     assert n * per_bytes + net <= budget < (n + 1) * per_bytes + net
     assert m.describe_bytes()["bytes"] == m.n * per_bytes + net
     if kernel == "learned":
         assert per_prim == 8 + latent_dim
         assert decoder_floats(latent_dim) == sum(p.numel() for p in PlanarDecoder(latent_dim).parameters())
-        assert m.describe_bytes()["network_bytes"] == 4 * decoder_floats(latent_dim)
+        assert m.describe_bytes()["network_bytes"] == 2 * decoder_floats(latent_dim)
 
 
 def test_latent_dim_must_not_be_negative():
@@ -172,7 +174,7 @@ def test_cli_writes_metrics(tmp_path):
     # the default learned kernel draws from a palette: decoder and palette paid once, a byte per splat
     shapes = ImageFitConfig().shapes
     assert m["shapes"] == shapes > 0
-    net = 4 * (decoder_floats() + shapes * LATENT_DIM)
+    net = 2 * (decoder_floats() + shapes * LATENT_DIM)  # float16
     # a byte for the palette index and one for the turn
     assert m["num_primitives"] == (2000 - net) // (4 * 8 + 2) and m["bytes"] <= 2000
     assert m["bytes"] == m["primitive_bytes"] + m["network_bytes"]
@@ -199,8 +201,8 @@ def test_cli_latent_dim_recorded(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["latent_dim"] == 3 and m["config"]["latent_dim"] == 3
     assert m["bytes_per_primitive"] == 4 * (8 + 3) + 1  # the latent's floats and the turn's byte
-    assert m["num_primitives"] == (2000 - 4 * decoder_floats(3)) // 45
-    assert m["network_bytes"] == 4 * decoder_floats(3) and m["network_floats"] == decoder_floats(3)
+    assert m["num_primitives"] == (2000 - 2 * decoder_floats(3)) // 45
+    assert m["network_bytes"] == 2 * decoder_floats(3) and m["network_floats"] == decoder_floats(3)
     assert m["shapes"] == 0
 
 
@@ -248,7 +250,7 @@ def test_cli_backends_agree_and_exact_refuses_cpu(tmp_path):
 def test_budget_below_one_primitive_says_what_it_needs(shapes):
     """A budget that cannot pay for the decoder (and palette) plus one primitive is an input error
     naming the smallest budget that works, and that budget fits exactly one primitive."""
-    needs = 4 * decoder_floats() + 4 * shapes * LATENT_DIM + bytes_per_primitive("learned", LATENT_DIM, shapes)
+    needs = 2 * decoder_floats() + 2 * shapes * LATENT_DIM + bytes_per_primitive("learned", LATENT_DIM, shapes)
     with pytest.raises(InputError, match=f"at least {needs}"):
         fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs - 1, iters=0, shapes=shapes))
     model, summary = fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=needs, iters=0,
@@ -284,7 +286,7 @@ def test_palette_bytes_within_budget(shapes, budget):
     n = num_primitives("learned", budget, 2, shapes)
     per = bytes_per_primitive("learned", 2, shapes)
     assert per == 4 * 8 + 2  # geometry and colour at float32, the palette index and the turn a byte each
-    net = 4 * (decoder_floats(2) + shapes * 2)  # the decoder and the palette, paid once
+    net = 2 * (decoder_floats(2) + shapes * 2)  # the decoder and the palette, paid once at float16
     assert n * per + net <= budget < (n + 1) * per + net
     m = Splats2D("learned", max(n, 1), 8, 8, shapes=shapes)
     m.quantize_shapes(torch.Generator().manual_seed(0))
@@ -292,6 +294,21 @@ def test_palette_bytes_within_budget(shapes, budget):
     assert m.describe_bytes()["bytes"] == m.n * per + net
     with pytest.raises(ValueError, match="shapes"):
         num_primitives("learned", budget, 2, 257)
+
+
+def test_fit_stores_the_shared_decoder_and_palette_at_their_paid_precision():
+    """network_bytes pays float16 for the decoder and palette, so the fitted model must hold
+    values that float16 represents exactly (the image measured is the image stored), while the
+    per-splat values stay float32 (a float16 round trip changes some of them)."""
+    torch.set_num_threads(1)
+    assert SHARED_BYTES_PER_FLOAT == torch.finfo(SHARED_DTYPE).bits // 8
+    m, _ = fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=3000, iters=12, shapes=8,
+                                                  shape_start=0.5))
+    shared = list(m.decoder.parameters()) + [m.palette]
+    for p in shared:
+        torch.testing.assert_close(p.detach(), p.detach().to(SHARED_DTYPE).float(), atol=0, rtol=0)
+    colors = m.colors.detach()
+    assert not torch.equal(colors, colors.to(SHARED_DTYPE).float())
 
 
 def test_palette_draws_each_splat_with_its_entry():
@@ -327,7 +344,7 @@ def test_palette_draws_each_splat_with_its_entry():
 def test_palette_fit_raises_psnr_and_records_shapes(tmp_path):
     torch.set_num_threads(1)
     target = _synthetic()
-    budget = 4 * decoder_floats(2) + 4 * 16 * 2 + 40 * bytes_per_primitive("learned", 2, 16)
+    budget = 2 * decoder_floats(2) + 2 * 16 * 2 + 40 * bytes_per_primitive("learned", 2, 16)
     m0, _ = fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=0, shapes=16))
     m1, summary = fit_image(target, ImageFitConfig(kernel="learned", budget_bytes=budget, iters=80, shapes=16))
     assert summary["num_primitives"] == 40 and m1.palette is not None

@@ -85,6 +85,13 @@ LATENT_DIM = 2
 MAX_SHAPES = 256
 #: steps of a learned splat's turn over 2 pi: one byte
 TURN_STEPS = 256
+#: storage of the learned kernel's shared decoder and palette. Per-splat values stay float32 for
+#: every kernel (equal terms); the shared part is a fixed cost that weighs most at small budgets
+#: (at float32 the decoder and a 64-shape palette took 996 bytes, 12% of 8 KiB), and float16
+#: keeps it to half. The fit rounds them at its end (:meth:`Splats2D.round_shared`), so the
+#: image measured is the image stored.
+SHARED_DTYPE = torch.float16
+SHARED_BYTES_PER_FLOAT = 2
 DEC_WIDTH = 8
 GABOR_WAVES = 2
 #: largest bbox half-size in pixels (bounds the pairs of a huge splat; its tail is cut there)
@@ -125,11 +132,12 @@ def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
 
 
 def network_bytes(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
-    """float32 bytes of what every splat shares: the learned decoder and, with a shape palette,
-    its ``shapes`` x ``latent_dim`` latents (0 for the other kernels)."""
+    """Bytes of what every splat shares, stored at float16 (:data:`SHARED_DTYPE`): the learned
+    decoder and, with a shape palette, its ``shapes`` x ``latent_dim`` latents (0 for the other
+    kernels)."""
     if kernel != "learned":
         return 0
-    return 4 * (decoder_floats(latent_dim) + shapes * latent_dim)
+    return SHARED_BYTES_PER_FLOAT * (decoder_floats(latent_dim) + shapes * latent_dim)
 
 
 def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
@@ -264,6 +272,16 @@ class Splats2D(nn.Module):
         centres, labels = kmeans(self.latents.detach().cpu(), self.shapes, generator)
         self.palette = nn.Parameter(centres.to(self.latents.device))
         self.shape_index = labels.to(self.latents.device)
+
+    @torch.no_grad()
+    def round_shared(self) -> None:
+        """Round the learned kernel's shared decoder and palette to :data:`SHARED_DTYPE`, the
+        precision :func:`network_bytes` pays for (values stay float32 tensors)."""
+        if self.kernel != "learned":
+            return
+        shared = list(self.decoder.parameters()) + ([self.palette] if self.palette is not None else [])
+        for p in shared:
+            p.copy_(p.to(SHARED_DTYPE).to(p.dtype))
 
     def splat_latents(self, idx: Tensor | None = None) -> Tensor:
         """[N or P, L] the latent each splat draws with (its palette entry once quantized)."""
@@ -401,7 +419,8 @@ class Splats2D(nn.Module):
         return out.reshape(self.height, self.width, 3)
 
     def describe_bytes(self) -> dict:
-        """Honest storage at float32 (and a byte per turn and palette index): ``bytes`` is everything
+        """Honest storage: per-splat floats at float32 (and a byte per turn and palette index), the
+        shared decoder and palette at float16. ``bytes`` is everything
         needed to redraw the image (the primitives and, for the learned kernel, the shared
         decoder and palette)."""
         per = bytes_per_primitive(self.kernel, self.latent_dim, self.shapes)

@@ -2,9 +2,11 @@
 
 The number of primitives is ``(budget_bytes - network_bytes) // bytes_per_primitive`` (see
 :func:`splatk.models.image2d.num_primitives`): the learned kernel's shared decoder (121 floats,
-484 bytes at the default latent size 2) and its shape palette (64 latents, 512 bytes; each splat
-names its shape with one byte, and stores its turn in another) are paid out of the same budget, as
-``splatk bench`` does, and ``bytes`` in metrics.json counts them.
+242 bytes at float16 and the default latent size 2) and its shape palette (64 latents of 2
+floats, 256 bytes; each splat names its shape with one byte, and stores its turn in another) are
+paid out of the same budget, as ``splatk bench`` does, and ``bytes`` in metrics.json counts them.
+Per-splat values are float32 for every kernel; the fit rounds the shared decoder and palette to
+float16 at its end, so the image it measures is the one those bytes redraw.
 Training follows GaussianImage (peers.md Sec. 7.1): random init, L2 loss on the unclamped sum,
 Adam; with a few hundred to a few thousand CPU iterations instead of 50k, the learning rates are
 larger than its 1e-3 and decay 10x over the run (cosine).
@@ -187,6 +189,7 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     seconds = time.perf_counter() - t0
+    model.round_shared()  # the shared decoder and palette are stored at float16
     # callers save, draw and measure on the CPU
     return model.cpu(), {"seconds": seconds, "final_loss": loss_v, "num_primitives": n}
 
