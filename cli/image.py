@@ -96,4 +96,5 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
                      + (f" and its {m['shapes']}-shape palette" if m["shapes"] else "") + ")"
                      if m["network_bytes"] else "")
                   + f", PSNR {m['psnr']:.2f}, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['seconds']:.1f} s")
+    click.echo(f"wrote {path.parent / m['file']} ({m['file_bytes']} bytes: {m['bytes']} and a header)")
     click.echo(f"wrote {path}")

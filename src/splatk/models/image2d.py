@@ -295,7 +295,9 @@ class Splats2D(nn.Module):
         passes straight through the rounding to the float parameter."""
         step = 2.0 * math.pi / TURN_STEPS
         stored = torch.round(self.turn.detach() / step) % TURN_STEPS * step
-        return self.turn + (stored - self.turn.detach())
+        # written so the value is exactly ``stored`` (turn - turn is 0 in floats; the other order
+        # is off by an ulp), so the stored file redraws the trained image bit for bit
+        return stored + (self.turn - self.turn.detach())
 
     @staticmethod
     def turned_uv(uv: Tensor, turn: Tensor) -> Tensor:
@@ -423,7 +425,9 @@ class Splats2D(nn.Module):
         shared decoder and palette at float16. ``bytes`` is everything
         needed to redraw the image (the primitives and, for the learned kernel, the shared
         decoder and palette)."""
-        per = bytes_per_primitive(self.kernel, self.latent_dim, self.shapes)
-        net = network_bytes(self.kernel, self.latent_dim, self.shapes)
+        # the palette actually made (k-means makes fewer entries than asked when n < shapes)
+        shapes = self.palette.shape[0] if self.palette is not None else self.shapes
+        per = bytes_per_primitive(self.kernel, self.latent_dim, shapes)
+        net = network_bytes(self.kernel, self.latent_dim, shapes)
         return {"bytes": per * self.n + net, "primitive_bytes": per * self.n, "bytes_per_primitive": per,
                 "network_bytes": net}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 import torch
 
@@ -15,23 +16,31 @@ from .volumetric import SplatModel
 FORMAT_VERSION = 1
 
 
-def atomic_torch_save(obj, path: str | Path) -> Path:
-    """Write to a temp file in the same folder, fsync, then rename: a crash never leaves a
-    half-written file in place of a good one."""
+def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
+    """Call ``write`` on a temp file in the same folder, fsync, then rename: a crash never leaves
+    a half-written file in place of a good one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it owner-only; results are not secrets
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
     return path
+
+
+def atomic_torch_save(obj, path: str | Path) -> Path:
+    """:func:`atomic_write` of ``torch.save(obj)``."""
+    return atomic_write(path, lambda f: torch.save(obj, f))
 
 
 def model_spec(model: SplatModel | PlanarModel, kernel_options: dict, color_options: dict) -> dict:

@@ -13,7 +13,8 @@ larger than its 1e-3 and decay 10x over the run (cosine).
 
 Writes into OUT: ``render.png`` (the reconstruction), ``primitives.png`` (each splat's
 1-sigma ellipse outlined in its colour), ``kernels.png`` (the kernel of the 16 largest splats
-over (u, v) in [-1, 1]^2, red positive / blue negative), ``metrics.json``.
+over (u, v) in [-1, 1]^2, red positive / blue negative), ``splats.bin`` (the splats as stored,
+:mod:`splatk.models.image2d_io`; ``splatk image-decode`` redraws it), ``metrics.json``.
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ from ..errors import InputError
 from ..metrics import compute_metrics, lpips_available
 from ..models.image2d import (BACKENDS, KERNELS, LATENT_DIM, MAX_SHAPES, Splats2D, bytes_per_primitive,
                               decoder_floats, network_bytes, num_primitives)
+from ..models.image2d_io import save_splats2d
 
 
 @dataclass
@@ -194,6 +196,20 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
     return model.cpu(), {"seconds": seconds, "final_loss": loss_v, "num_primitives": n}
 
 
+def decode_image(splats: Path, out: Path, backend: str = "auto") -> Path:
+    """Redraw the image stored in ``splats`` (a ``splats.bin``) into the PNG ``out``."""
+    from ..models.image2d_io import load_splats2d
+
+    model = load_splats2d(splats)
+    model.backend = backend
+    with torch.no_grad():
+        img = model.render().clamp(0, 1)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_png(img, out)
+    return out
+
+
 def primitives_picture(model: Splats2D, scale: int = 2) -> "object":
     """PIL image: each splat's 1-sigma ellipse outlined in its (clamped) colour on grey."""
     from PIL import Image, ImageDraw
@@ -254,6 +270,7 @@ def run_image_fit(photo: Path, out: Path, cfg: ImageFitConfig, overwrite: bool =
     with torch.no_grad():
         img = model.render().clamp(0, 1)
     save_png(img, out / "render.png")
+    save_splats2d(model, out / "splats.bin")
     primitives_picture(model).save(out / "primitives.png")
     if cfg.kernel != "gaussian":
         kernels_picture(model).save(out / "kernels.png")
@@ -268,6 +285,8 @@ def run_image_fit(photo: Path, out: Path, cfg: ImageFitConfig, overwrite: bool =
         "kernel": cfg.kernel, "iterations": cfg.iters, "seconds": summary["seconds"],
         "bytes_per_primitive": sizes["bytes_per_primitive"], "budget_bytes": cfg.budget_bytes,
         "network_bytes": sizes["network_bytes"],
+        # the splats as stored: a 20-byte header, then exactly ``bytes`` (load_splats2d redraws them)
+        "file": "splats.bin", "file_bytes": (out / "splats.bin").stat().st_size,
         "network_floats": decoder_floats(cfg.latent_dim) if cfg.kernel == "learned" else 0,
         "latent_dim": cfg.latent_dim if cfg.kernel == "learned" else 0,
         "shapes": model.shapes,
