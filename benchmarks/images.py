@@ -130,7 +130,8 @@ def main() -> None:
                   f"{s['lpips']:6.3f} {s['seconds']:6.0f}")
         g, gb, lr = (summary.get(f"{b}/{k}") for k in ("gaussian", "gabor", "learned"))
         if g and gb and lr:
-            print(f"{'':7} learned - gaussian {lr['psnr'] - g['psnr']:+.2f} dB (target +0.50), "
+            # the issue's +0.5 dB is "on average", over the photos and the budgets: printed below
+            print(f"{'':7} learned - gaussian {lr['psnr'] - g['psnr']:+.2f} dB, "
                   f"learned - gabor {lr['psnr'] - gb['psnr']:+.2f} dB (target >= 0)")
         for k in kernels:
             pal = summary.get(f"{b}/{k}")
@@ -140,6 +141,11 @@ def main() -> None:
         if g and same:
             print(f"{'':7} learned at the gaussian's count ({same['bytes'] / b:.2f}x the bytes) - gaussian "
                   f"{same['psnr'] - g['psnr']:+.2f} dB")
+    gaps = [summary[f"{b}/learned"]["psnr"] - summary[f"{b}/gaussian"]["psnr"] for b in budgets
+            if f"{b}/learned" in summary and f"{b}/gaussian" in summary]
+    if len(gaps) > 1:  # the "on average": over the photos and the budgets
+        print(f"{'':7} over the {len(gaps)} budgets: learned - gaussian {sum(gaps) / len(gaps):+.2f} dB "
+              "(target +0.50)")
     print(f"\nper photo PSNR{' (mean over seeds)' if len(seeds) > 1 else ''}:")
     wins = {b: 0 for b in budgets}
     for b in budgets:

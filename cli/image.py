@@ -24,7 +24,8 @@ _D = ImageFitConfig()
                    "take a byte each), the shared decoder and palette included at float16 (24576, 24KB, "
                    "1.5MB); sets the number of primitives.")
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True,
-              help="Folder for render.png, primitives.png, kernels.png and metrics.json.")
+              help="Folder for render.png, primitives.png, kernels.png, splats.bin (the stored splats; "
+                   "`splatk image-decode` redraws them) and metrics.json.")
 @click.option("--iters", type=int, default=_D.iters, show_default=True, help="Optimisation steps.")
 @click.option("--seed", type=int, default=_D.seed, show_default=True, help="Random seed of the init.")
 @click.option("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice).")

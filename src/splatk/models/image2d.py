@@ -290,11 +290,14 @@ class Splats2D(nn.Module):
         index = self.shape_index if idx is None else self.shape_index[idx]
         return self.palette[index]
 
+    def turn_steps(self) -> Tensor:
+        """[N] each learned splat's turn as its stored byte: steps of 2 pi / TURN_STEPS (float)."""
+        return torch.round(self.turn.detach() / (2.0 * math.pi / TURN_STEPS)) % TURN_STEPS
+
     def turns(self) -> Tensor:
         """[N] each learned splat's turn as stored (rounded to one of TURN_STEPS); the gradient
         passes straight through the rounding to the float parameter."""
-        step = 2.0 * math.pi / TURN_STEPS
-        stored = torch.round(self.turn.detach() / step) % TURN_STEPS * step
+        stored = self.turn_steps() * (2.0 * math.pi / TURN_STEPS)
         # written so the value is exactly ``stored`` (turn - turn is 0 in floats; the other order
         # is off by an ulp), so the stored file redraws the trained image bit for bit
         return stored + (self.turn - self.turn.detach())
@@ -422,9 +425,9 @@ class Splats2D(nn.Module):
 
     def describe_bytes(self) -> dict:
         """Honest storage: per-splat floats at float32 (and a byte per turn and palette index), the
-        shared decoder and palette at float16. ``bytes`` is everything
-        needed to redraw the image (the primitives and, for the learned kernel, the shared
-        decoder and palette)."""
+        shared decoder and palette at float16. ``bytes`` is everything needed to redraw the image
+        (the primitives and, for the learned kernel, the shared decoder and palette), and what
+        :func:`splatk.models.image2d_io.save_splats2d` writes after its header."""
         # the palette actually made (k-means makes fewer entries than asked when n < shapes)
         shapes = self.palette.shape[0] if self.palette is not None else self.shapes
         per = bytes_per_primitive(self.kernel, self.latent_dim, shapes)

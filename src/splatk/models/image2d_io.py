@@ -56,9 +56,7 @@ def encode_splats2d(model: Splats2D) -> bytes:
     if model.kernel == "gabor":
         parts += [f32(model.gabor_amps), f32(model.gabor_freqs)]
     if model.kernel == "learned":
-        step = 2.0 * math.pi / TURN_STEPS
-        turn = (torch.round(model.turn.detach().cpu() / step) % TURN_STEPS).to(torch.uint8)
-        parts.append(turn.numpy().tobytes())
+        parts.append(model.turn_steps().cpu().to(torch.uint8).numpy().tobytes())
         parts.append(model.shape_index.cpu().to(torch.uint8).numpy().tobytes() if palette is not None
                      else f32(model.latents))
         shared = _decoder_tensors(model) + ([palette] if palette is not None else [])
