@@ -65,3 +65,11 @@ def synthetic_scene(num_views: int = 12, size: int = 48, seed: int = 0, num_poin
     test = [c for i, c in enumerate(cams) if i % 4 == 0]
     train = [c for i, c in enumerate(cams) if i % 4 != 0]
     return Scene(Path("synthetic"), train, test, pts, cols, bg, "synthetic")
+
+
+def synthetic_photo(h: int = 24, w: int = 32) -> torch.Tensor:
+    """[h, w, 3] smooth colour waves with a hard-edged red disk: a photo for the 2D image fits."""
+    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    img = torch.stack([0.5 + 0.4 * torch.sin(6 * x), 0.5 + 0.4 * torch.cos(5 * y), 0.3 + 0.5 * x * y], -1)
+    img[(x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.05] = torch.tensor([0.9, 0.2, 0.1])
+    return img

@@ -16,6 +16,7 @@ from splatk.models.image2d import (KERNELS, LATENT_DIM, SHARED_BYTES_PER_FLOAT, 
                                    Splats2D, bytes_per_primitive, decoder_floats, floats_per_primitive, kmeans,
                                    num_primitives)
 from splatk.stages.image_fit import ImageFitConfig, fit_image
+from tests.scenes import synthetic_photo as _synthetic
 
 
 def _learned(n=5, grid=8, seed=0):
@@ -131,13 +132,6 @@ def test_bytes_within_budget(kernel, latent_dim, budget):
 def test_latent_dim_must_not_be_negative():
     with pytest.raises(InputError):
         fit_image(_synthetic(), ImageFitConfig(kernel="learned", budget_bytes=4000, iters=0, latent_dim=-1))
-
-
-def _synthetic(h=24, w=32):
-    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
-    img = torch.stack([0.5 + 0.4 * torch.sin(6 * x), 0.5 + 0.4 * torch.cos(5 * y), 0.3 + 0.5 * x * y], -1)
-    img[(x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.05] = torch.tensor([0.9, 0.2, 0.1])
-    return img
 
 
 @pytest.mark.parametrize("kernel", KERNELS)

@@ -12,13 +12,7 @@ from click.testing import CliRunner
 from splatk.errors import InputError
 from splatk.models.image2d_io import HEADER_BYTES, encode_splats2d, load_splats2d, save_splats2d
 from splatk.stages.image_fit import ImageFitConfig, fit_image
-
-
-def _synthetic(h=24, w=32):
-    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
-    img = torch.stack([0.5 + 0.4 * torch.sin(6 * x), 0.5 + 0.4 * torch.cos(5 * y), 0.3 + 0.5 * x * y], -1)
-    img[(x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.05] = torch.tensor([0.9, 0.2, 0.1])
-    return img
+from tests.scenes import synthetic_photo as _synthetic
 
 
 CASES = [("gaussian", 0), ("gabor", 0), ("learned", 0), ("learned", 8)]

@@ -91,7 +91,7 @@ TURN_STEPS = 256
 #: keeps it to half. The fit rounds them at its end (:meth:`Splats2D.round_shared`), so the
 #: image measured is the image stored.
 SHARED_DTYPE = torch.float16
-SHARED_BYTES_PER_FLOAT = 2
+SHARED_BYTES_PER_FLOAT = torch.finfo(SHARED_DTYPE).bits // 8
 DEC_WIDTH = 8
 GABOR_WAVES = 2
 #: largest bbox half-size in pixels (bounds the pairs of a huge splat; its tail is cut there)

@@ -33,7 +33,7 @@ from ..errors import InputError
 from ..metrics import compute_metrics, lpips_available
 from ..models.image2d import (BACKENDS, KERNELS, LATENT_DIM, MAX_SHAPES, Splats2D, bytes_per_primitive,
                               decoder_floats, network_bytes, num_primitives)
-from ..models.image2d_io import save_splats2d
+from ..models.image2d_io import load_splats2d, save_splats2d
 
 
 @dataclass
@@ -198,8 +198,6 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
 
 def decode_image(splats: Path, out: Path, backend: str = "auto") -> Path:
     """Redraw the image stored in ``splats`` (a ``splats.bin``) into the PNG ``out``."""
-    from ..models.image2d_io import load_splats2d
-
     model = load_splats2d(splats)
     model.backend = backend
     with torch.no_grad():
