@@ -9,6 +9,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from splatk.stages.fit_config import parse_duration
 from splatk.stages.bench import (
     STABILITY_CONDITIONS,
     STABILITY_KERNELS,
@@ -20,7 +21,7 @@ from splatk.stages.bench import (
     table_rows,
 )
 
-from .common import find_preset, parse_duration
+from .common import find_preset
 
 # single-valued flags that go into every method's defaults (flag name -> settings key)
 _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backend", "seed", "sh_degree",
@@ -78,7 +79,10 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
         if flags.get(name) is not None:
             defaults[name] = flags[name]
     if "time_budget" in defaults:
-        defaults["time_budget"] = parse_duration(defaults["time_budget"])
+        try:
+            defaults["time_budget"] = parse_duration(defaults["time_budget"])
+        except ValueError as e:
+            raise click.BadParameter(str(e), param_hint="--time-budget") from None
     methods = list(data.get("methods") or [])
     if kernel:
         methods = build_methods(kernel, ks, weights, color, budget, budget_bytes)

@@ -1,13 +1,14 @@
 """Shared CLI plumbing: presets, value parsing, error reporting. No engine logic here."""
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
 import click
 import yaml
 from click.core import ParameterSource
+
+from splatk.errors import InputError
 
 PRESET_DIRS = [Path(__file__).resolve().parent.parent / "presets"]
 
@@ -23,61 +24,58 @@ def find_preset(name: str) -> Path:
     raise click.BadParameter(f"preset {name!r} not found (looked in {', '.join(map(str, PRESET_DIRS))})")
 
 
-def load_preset(name: str | None) -> dict:
+def load_preset(name: str | None) -> tuple[dict, Path | None]:
+    """(option values, file) of a preset; ({}, None) without one."""
     if not name:
-        return {}
+        return {}, None
     path = find_preset(name)
     try:
         data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise click.BadParameter(f"{path}: invalid YAML ({e})") from e
-    if not isinstance(data, dict):
-        raise click.BadParameter(f"{path}: a preset is a mapping of option names to values")
-    return {k.replace("-", "_"): v for k, v in data.items()}
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise InputError(path, f"invalid YAML ({str(e).splitlines()[0]})", "fix the preset file") from None
+    if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
+        raise InputError(path, "a preset is a mapping of option names to values", "e.g. iters: 2000")
+    return {k.replace("-", "_"): v for k, v in data.items()}, path
 
 
-def resolve_options(ctx: click.Context, params: dict, preset: dict) -> tuple[dict, dict]:
+def resolve_options(ctx: click.Context, params: dict, preset: dict,
+                    preset_path: Path | None = None) -> tuple[dict, dict]:
     """Merge command line > SPLATK_* environment > preset > default.
 
     Returns (values, sources) for every option in ``params``; options left at None mean
-    "use the engine's default".
+    "use the engine's default". Preset values pass through the same click types as the
+    command line's (an InputError naming the preset when one does not fit); ranges are checked
+    by the engine, whatever the source.
     """
+    by_name = {p.name: p for p in ctx.command.params}
+    where = f"preset {preset_path}" if preset_path else "preset"
+    unknown = sorted(set(preset) - set(params))
+    if unknown:
+        raise InputError(preset_path, f"unknown option {unknown[0]!r}",
+                         f"see `splatk {ctx.command.name} --help` for the options")
     values, sources = {}, {}
     for name, value in params.items():
         src = ctx.get_parameter_source(name)
         if src in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT):
             values[name], sources[name] = value, "command line" if src == ParameterSource.COMMANDLINE else "environment"
-        elif name in preset:
-            values[name], sources[name] = preset[name], "preset"
+        elif name in preset and preset[name] is not None:
+            values[name], sources[name] = _typed(ctx, by_name[name], preset[name], preset_path), where
         else:
             values[name], sources[name] = value, "default"
-    unknown = set(preset) - set(params)
-    if unknown:
-        raise click.BadParameter(f"preset has unknown options: {', '.join(sorted(unknown))}")
     return values, sources
 
 
-_DUR = re.compile(r"(\d+(?:\.\d+)?)\s*([hms]?)")
-
-
-def parse_duration(text: str | float | int | None) -> float | None:
-    """'10m', '90s', '1h30m', '600' (seconds) -> seconds."""
-    if text is None:
-        return None
-    if isinstance(text, (int, float)):
-        return float(text)
-    s = str(text).strip().lower().replace(" ", "")
-    if not s:
-        return None
-    total, pos = 0.0, 0
-    for m in _DUR.finditer(s):
-        if m.start() != pos:
-            break
-        total += float(m.group(1)) * {"h": 3600, "m": 60, "s": 1, "": 1}[m.group(2)]
-        pos = m.end()
-    if pos != len(s):
-        raise click.BadParameter(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
-    return total
+def _typed(ctx: click.Context, param: click.Parameter, value, preset_path: Path | None):
+    """A preset value converted by the option's click type, as a typed flag would be."""
+    if isinstance(value, (dict, list)) or (isinstance(value, bool) and not param.is_flag
+                                           and not isinstance(param.type, click.types.BoolParamType)):
+        raise InputError(preset_path, f"{param.name}: {value!r} is not a single value",
+                         f"see `splatk {ctx.command.name} --help`")
+    try:
+        return param.type.convert(value, param, ctx)
+    except click.BadParameter as e:
+        raise InputError(preset_path, f"{param.name}: {e.format_message()}",
+                         f"see `splatk {ctx.command.name} --help`") from None
 
 
 def fail(message: str, code: int = 2) -> None:

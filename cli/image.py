@@ -45,7 +45,9 @@ _D = ImageFitConfig()
 @click.option("--device", default=_D.device, show_default=True,
               help="Torch device to train on, e.g. cpu or cuda (anything but cpu renders with torch).")
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing result in --out.")
+@click.option("--overwrite", is_flag=True, allow_from_autoenv=False,
+              help="Replace --out if it holds an earlier `splatk image` result (never any other folder; not read "
+                   "from the environment). Otherwise --out must be new or empty.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
             exact, backend, device, no_lpips, overwrite, quiet):
@@ -58,7 +60,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
 
     if threads:
         torch.set_num_threads(threads)
-    from splatk.stages.bench import parse_bytes
+    from splatk.stages.fit_config import parse_bytes
 
     try:
         budget_bytes = parse_bytes(budget_bytes)

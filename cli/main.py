@@ -6,11 +6,17 @@ import traceback
 
 import click
 
-from splatk.errors import BackendUnavailable, InputError
+from splatk.errors import BackendUnavailable, InputError, TrainingStalled
+
+#: exit codes: 2 bad input (a one-line message naming the file and the fix), 3 training stalled
+#: (the run folder keeps its last healthy checkpoint), 128 + N stopped by signal N (130 Ctrl-C,
+#: 143 SIGTERM) after saving a checkpoint
+EXIT_INPUT_ERROR, EXIT_STALLED = 2, 3
 
 
 class SplatkGroup(click.Group):
-    """Turns input errors into one line and exit code 2; tracebacks only with -v."""
+    """Turns input errors into one line and exit code 2, a stalled fit into one line and exit
+    code 3; tracebacks only with -v."""
 
     def invoke(self, ctx):
         try:
@@ -19,7 +25,12 @@ class SplatkGroup(click.Group):
             if ctx.obj and ctx.obj.get("verbose"):
                 traceback.print_exc()
             click.echo(f"splatk: error: {e.message()}", err=True)
-            sys.exit(2)
+            sys.exit(EXIT_INPUT_ERROR)
+        except TrainingStalled as e:
+            if ctx.obj and ctx.obj.get("verbose"):
+                traceback.print_exc()
+            click.echo(f"splatk: error: {e.message()}", err=True)
+            sys.exit(EXIT_STALLED)
         except BackendUnavailable as e:
             click.echo(f"splatk: error: {e}", err=True)
             sys.exit(2)

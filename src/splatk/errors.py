@@ -25,3 +25,24 @@ class InputError(Exception):
 
 class BackendUnavailable(RuntimeError):
     """A rasteriser backend cannot run here (e.g. no compiler for the native CPU backend)."""
+
+
+class TrainingStalled(RuntimeError):
+    """Training cannot get past a point: rollbacks to the same healthy state keep failing.
+
+    The CLI prints it in one line and exits with code 3; the run folder keeps the last healthy
+    state as its checkpoint.
+    """
+
+    def __init__(self, reason: str, cause: str, run: Path | None = None):
+        self.reason, self.cause, self.run = reason, cause, run
+        super().__init__(self.message())
+
+    def at(self, run: str | Path) -> "TrainingStalled":
+        return TrainingStalled(self.reason, self.cause, Path(run))
+
+    def message(self) -> str:
+        where = f"{self.run}: " if self.run is not None else ""
+        kept = (f"; the last healthy state is in {self.run / 'checkpoints' / 'last.pt'}"
+                if self.run is not None else "")
+        return f"{where}training stalled: {self.reason} (likely cause: {self.cause}{kept})"

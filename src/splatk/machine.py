@@ -50,3 +50,15 @@ def machine_info() -> dict:
         "splatk": __version__,
         "native_march": os.environ.get("SPLATK_NATIVE_MARCH", "1") != "0",
     }
+
+
+def memory_bytes() -> int:
+    """This machine's physical memory in bytes (or a cgroup's limit when lower)."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:  # containers: cgroup v2's limit
+        limit = open("/sys/fs/cgroup/memory.max").read().strip()
+        if limit.isdigit():
+            total = min(total, int(limit))
+    except OSError:
+        pass
+    return total

@@ -29,7 +29,7 @@ import json
 import math
 import os
 import re
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -38,22 +38,16 @@ import yaml
 
 from ..data import detect_format, load_scene
 from ..errors import InputError
-from ..kernels.planar import PLANAR_KERNELS
 from ..machine import machine_info
-from ..models.planar import PlanarModel
-from ..models.volumetric import SplatModel
 from ..train.trainer import TrainConfig
-from .autobudget import AutoBudgetConfig
 from .evaluate import run_eval
-from .fit import (FULL_ITERS, PRIMITIVES, FitConfig, _color_options, boost_short_run_lrs, run_fit,
-                  scale_schedules_to_run)
+from .fit import FULL_ITERS, boost_short_run_lrs, run_fit, scale_schedules_to_run
+from .fit_config import FitConfig, check_fit_config, fit_config_from_options, parse_bytes
 
 #: keys a method may have besides FitConfig / TrainConfig fields
 METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options")
 RESULT_KEYS = ("psnr", "ssim", "lpips", "train_seconds", "render_ms", "footprint_mb", "num_primitives")
 
-_FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train"}
-_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)}
 
 
 @dataclass
@@ -79,16 +73,6 @@ class BenchConfig:
 
 
 # ---- methods ------------------------------------------------------------------------------
-def parse_bytes(value) -> int:
-    """4194304, "4MB", "512KB", "1.5GB" -> bytes (K/M/G are powers of 1024, as footprint_mb)."""
-    if isinstance(value, (int, float)):
-        return int(value)
-    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([kmg]?)(i?b)?\s*", str(value).lower())
-    if not m:
-        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
-    return int(float(m.group(1)) * {"": 1, "k": 2**10, "m": 2**20, "g": 2**30}[m.group(2)])
-
-
 def expand_grid(grid: dict) -> list[dict]:
     """Cartesian product of ``{key: [values]}``; a dict value is merged into the method instead
     of being assigned to the key (``kernel: [gaussian, {kernel: learned, k: 4}]``)."""
@@ -166,71 +150,18 @@ def _human_bytes(n: int) -> str:
     return str(n)
 
 
-def bytes_per_primitive(cfg: FitConfig) -> tuple[int, int]:
-    """(bytes per primitive, bytes of the global networks) of the model `fit` builds with ``cfg``
-    (a PlanarModel for ``primitive: planar``), counted from the model itself:
-    4 x ``floats_per_primitive()`` and 4 x network parameters."""
-    model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
-    model = model_class.from_points(torch.zeros(1, 3), torch.zeros(1, 3), kernel=cfg.kernel, color=cfg.color,
-                                    kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
-    return 4 * model.floats_per_primitive(), 4 * sum(p.numel() for p in model.kernel.parameters())
-
-
 def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: bool = True,
                    scale_lrs: bool = True) -> tuple[FitConfig, dict]:
-    """Resolve a method (over ``defaults``) into a FitConfig.
+    """Resolve a method (over ``defaults``) into a checked FitConfig, as `splatk fit` would
+    with the same options (:func:`~splatk.stages.fit_config.fit_config_from_options`).
 
     Returns (config, notes): notes say how the budget and schedules were derived.
     """
     spec = {**(defaults or {}), **method}
     if "budget_bytes" in method:
         spec.pop("budget", None)  # the method's byte budget beats a default count
-    notes: dict = {}
-    cfg = FitConfig()
-    kernel_options = dict(spec.pop("kernel_options", None) or {})
-    planar = spec.get("primitive", "volumetric") == "planar"
-    if "k" in spec:
-        k = spec.pop("k")
-        if spec.get("kernel", "gaussian") == "learned" and not planar:  # the planar kernel has no k
-            kernel_options["k"] = int(k)
-    if "weights" in spec:
-        w = spec.pop("weights")
-        if spec.get("kernel", "gaussian") == "learned":
-            kernel_options["weights"] = "none" if w is None else str(w)
-    spec.pop("name", None)
-    budget_bytes = spec.pop("budget_bytes", None)
-    budget = spec.pop("budget", None)
-    auto_opts = spec.pop("auto_budget", None)
-    for key, value in spec.items():
-        if key in _FIT_FIELDS:
-            setattr(cfg, key, value)
-        elif key in _TRAIN_FIELDS:
-            setattr(cfg.train, key, value)
-        else:
-            raise ValueError(f"unknown method setting {key!r}")
-    if cfg.primitive not in PRIMITIVES:
-        raise ValueError(f"unknown primitive {cfg.primitive!r} (use {' or '.join(PRIMITIVES)})")
-    if cfg.primitive == "planar" and cfg.kernel not in PLANAR_KERNELS:
-        # refused here, before any training, rather than as a failed run per scene
-        raise ValueError(f"kernel {cfg.kernel!r} has no planar version (use {' or '.join(sorted(PLANAR_KERNELS))})")
-    cfg.kernel_options = kernel_options
-    cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
-    if cfg.train.time_budget is not None:
-        cfg.train.time_budget = float(cfg.train.time_budget)
-        if "iters" not in spec:
-            cfg.train.iters = 10**9  # the clock decides (with iters too, whichever ends first)
-    if budget_bytes is not None:
-        total = parse_bytes(budget_bytes)
-        per_prim, nets = bytes_per_primitive(cfg)
-        cfg.train.budget = max(1, (total - nets) // per_prim)
-        notes["budget"] = {"budget_bytes": total, "bytes_per_primitive": per_prim, "network_bytes": nets,
-                           "budget": cfg.train.budget,
-                           "rule": "budget = (budget_bytes - network_bytes) // bytes_per_primitive"}
-    elif budget is not None and str(budget).strip().lower() == "auto":
-        cfg.auto_budget = AutoBudgetConfig(**(auto_opts or {}))
-        notes["budget"] = {"auto": True, "reference_budget": cfg.train.budget}
-    elif budget is not None:
-        cfg.train.budget = int(float(budget))
+    cfg, notes = fit_config_from_options(spec, {k: "bench method" for k in spec})
+    check_fit_config(cfg, "bench method")
     if scale_schedules and cfg.train.time_budget is None and cfg.train.iters < FULL_ITERS:
         s = cfg.train.iters / FULL_ITERS
         scaled = scale_schedules_to_run(cfg, keep=set(spec))  # as `splatk fit` does

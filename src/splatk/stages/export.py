@@ -16,6 +16,10 @@ import torch
 
 from ..errors import InputError
 from ..models.io import load_model
+from ..outputs import OutputDir, check_output_dir, check_output_file
+
+#: the marker kind of a renders folder (``splatk.outputs``)
+RENDERS_KIND = "renders"
 
 
 def write_png(path: str | Path, img: torch.Tensor) -> Path:
@@ -59,9 +63,10 @@ def ply_arrays(model) -> dict[str, np.ndarray]:
     return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in cols.items()}
 
 
-def export_ply(run: str | Path, out: str | Path) -> Path:
+def export_ply(run: str | Path, out: str | Path, overwrite: bool = False) -> Path:
     from plyfile import PlyData, PlyElement
 
+    check_output_file(out, overwrite, inputs=[Path(run) / "model.pt"])
     model, _ = load_model(Path(run) / "model.pt")
     if getattr(model, "primitive", "volumetric") == "planar":
         # a 3DGS PLY has three scales and viewers draw ellipsoids; faking a thin third scale
@@ -79,8 +84,9 @@ def export_ply(run: str | Path, out: str | Path) -> Path:
     return out
 
 
-def export_native(run: str | Path, out: str | Path) -> Path:
+def export_native(run: str | Path, out: str | Path, overwrite: bool = False) -> Path:
     src = Path(run) / "model.pt"
+    check_output_file(out, overwrite, inputs=[src])
     load_model(src)  # validates
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -88,17 +94,27 @@ def export_native(run: str | Path, out: str | Path) -> Path:
     return out
 
 
-def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_frames: int = 48) -> Path:
-    """Test-view PNGs plus ``path.gif`` interpolated between train cameras."""
+def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_frames: int = 48,
+                   overwrite: bool = False) -> Path:
+    """Test-view PNGs plus ``path.gif`` interpolated between train cameras, into a folder that
+    is new, empty, or (with ``overwrite``) an earlier renders export."""
     from ..data import load_scene
-    from ..render_path import interpolate_cameras
 
+    out = Path(out)
     model, meta = load_model(Path(run) / "model.pt")
+    inputs = [Path(run), meta.get("scene")]
+    check_output_dir(out, RENDERS_KIND, overwrite, inputs=inputs)
     scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0),
                        test_every=meta.get("test_every", 8),
                        background=tuple(meta["background"]) if meta.get("background") else None)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with OutputDir(out, RENDERS_KIND, overwrite, inputs=inputs):
+        _write_renders(model, scene, out, backend, gif_frames)
+    return out
+
+
+def _write_renders(model, scene, out: Path, backend: str, gif_frames: int) -> None:
+    from ..render_path import interpolate_cameras
+
     bg = torch.tensor(scene.background, dtype=torch.float32)
     frames = []
     with torch.no_grad():
@@ -112,4 +128,3 @@ def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_
 
         ims = [Image.fromarray(f) for f in frames]
         ims[0].save(out / "path.gif", save_all=True, append_images=ims[1:], duration=80, loop=0)
-    return out

@@ -11,12 +11,11 @@ Run folder layout::
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
-import shutil
-import tempfile
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -24,7 +23,7 @@ import torch
 import yaml
 
 from ..data import load_scene
-from ..errors import InputError
+from ..errors import InputError, TrainingStalled
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS
@@ -32,9 +31,17 @@ from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
 from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
+from ..outputs import OutputDir, check_output_dir
 from ..train.mcmc import MCMCConfig
 from ..train.trainer import StepInfo, TrainConfig, Trainer
-from .autobudget import AutoBudget, AutoBudgetConfig, render_psnr, split_holdout
+from .autobudget import AutoBudget, render_psnr, split_holdout
+from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, color_options as _color_options,
+                         fit_config_from_options)
+
+#: the marker kind of a run folder (``splatk.outputs``)
+RUN_KIND = "fit run"
+#: settings ``fit --resume`` may change; every other one given on resume must equal the run's
+RESUME_CHANGEABLE = ("iters", "time_budget", "checkpoint_every", "threads", "backend", "device")
 
 
 #: the paper's run length; the step-count schedules below are tuned for it
@@ -126,103 +133,6 @@ def boost_short_run_lrs(cfg: "FitConfig", keep: frozenset | set = frozenset()) -
     return boosted
 
 
-@dataclass
-class FitConfig:
-    """Everything `splatk fit` can be told. Presets (YAML) and flags fill these fields."""
-
-    #: splatting kernel: gaussian | beta | student_t | learned
-    kernel: str = "gaussian"
-    #: kernel options (learned: k, latent dims, widths, weights file ...)
-    kernel_options: dict = field(default_factory=dict)
-    #: colour model: sh (spherical harmonics) | sb (spherical Beta)
-    color: str = "sh"
-    #: maximum SH degree (raised by one every `sh_degree_interval` iterations)
-    sh_degree: int = 3
-    #: number of spherical-Beta lobes (color = sb)
-    sb_lobes: int = 2
-    #: primitive type: volumetric (3D ellipsoids) | planar (2D surfels)
-    primitive: str = "volumetric"
-    #: image downscale factor
-    downscale: float = 1.0
-    #: every n-th image is a test view when the dataset names none
-    test_every: int = 8
-    #: train on every n-th train view only (4: a quarter of them); test views are unaffected
-    view_stride: int = 1
-    #: background colour for RGBA data and renders (None: the loader's default)
-    background: list | None = None
-    #: rasteriser backend: auto | torch | cpu
-    backend: str = "auto"
-    #: torch device
-    device: str = "cpu"
-    #: torch threads (0: all cores)
-    threads: int = 0
-    #: checkpoint every n iterations (and on Ctrl-C)
-    checkpoint_every: int = 1000
-    #: choose the budget from held-out train views (`--budget auto`); None: use train.budget
-    auto_budget: AutoBudgetConfig | None = None
-    train: TrainConfig = field(default_factory=TrainConfig)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "FitConfig":
-        d = dict(d)
-        train = TrainConfig(**d.pop("train", {}))
-        if isinstance(d.get("auto_budget"), dict):
-            d["auto_budget"] = AutoBudgetConfig(**d["auto_budget"])
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown fit settings: {', '.join(sorted(unknown))}")
-        return cls(train=train, **d)
-
-
-def check_run_dir(out: Path, overwrite: bool) -> None:
-    """Refuse a non-empty ``out`` without ``overwrite`` and an unwritable one, touching nothing.
-
-    Called before the scene is loaded, so a bad scene or a refused folder never costs an
-    existing run (``prepare_run_dir`` replaces the folder only after the inputs checked out).
-    """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "output path exists and is a file, not a folder", "choose another --out")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(out, "output folder exists and is not empty",
-                         "pass --overwrite, --resume, or choose another --out")
-    probe_dir = out
-    while not probe_dir.exists() and probe_dir != probe_dir.parent:
-        probe_dir = probe_dir.parent
-    if not probe_dir.is_dir():
-        raise InputError(out, f"cannot create output folder: {probe_dir} is not a folder",
-                         "choose a writable --out")
-    try:
-        with tempfile.TemporaryFile(dir=probe_dir):
-            pass
-    except OSError as e:
-        where = "output folder is not writable" if probe_dir == out else f"cannot create output folder in {probe_dir}"
-        raise InputError(out, f"{where} ({e.strerror or e})", "choose a writable --out") from None
-
-
-def prepare_run_dir(out: Path, overwrite: bool, resume: bool) -> None:
-    out = Path(out)
-    if resume:
-        if not (out / "checkpoints" / "last.pt").is_file():
-            raise InputError(out, "no checkpoint to resume from", "run without --resume")
-        return
-    check_run_dir(out, overwrite)
-    try:
-        if out.exists() and any(out.iterdir()):
-            shutil.rmtree(out)
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_test"
-        probe.write_bytes(b"x")
-        probe.unlink()
-    except OSError as e:
-        raise InputError(out, f"cannot write output folder ({e.strerror or e})",
-                         "choose a writable --out") from e
-
-
 def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
     """(scene path, settings, checkpoint) of the run in ``out``; InputError if any is unusable."""
     out = Path(out)
@@ -249,9 +159,6 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
         raise InputError(ckpt_path, f"checkpoint is corrupt or truncated ({msg})",
                          "delete the run folder and start again without --resume") from None
     return scene_path, cfg, state
-
-
-PRIMITIVES = ("volumetric", "planar")
 
 
 def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel | PlanarModel:
@@ -294,32 +201,97 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
                                   kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
 
 
-def _color_options(cfg: FitConfig) -> dict:
-    return {"sh_degree": cfg.sh_degree} if cfg.color == "sh" else {"num_lobes": cfg.sb_lobes}
-
-
 def run_fit(
-    scene_path: str | Path,
+    scene_path: str | Path | None,
     out: str | Path,
-    cfg: FitConfig,
+    cfg: FitConfig | None = None,
     overwrite: bool = False,
     resume: bool = False,
     config_sources: dict | None = None,
     on_start: Callable[[dict], None] | None = None,
     on_step: Callable[[StepInfo], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    resume_options: dict | None = None,
 ) -> Path:
     """Train and write RUN/model.pt; returns the run folder.
 
+    Every setting is checked, and the scene loaded and checked, before the run folder is
+    touched; ``overwrite`` replaces only a run folder splatk wrote (``splatk.outputs``), and the
+    folder is locked while this process writes it.
+
     With ``resume``, the settings saved in RUN/config.yaml are used and training continues
-    from RUN/checkpoints/last.pt (parameters, optimiser, RNGs, density control).
+    from RUN/checkpoints/last.pt (parameters, optimiser, RNGs, density control). ``scene_path``
+    may be None; given, it must be the run's scene. ``resume_options`` (flat option names, as
+    :func:`fit_config_from_options` takes them) are what the user asked for on resume: those in
+    :data:`RESUME_CHANGEABLE` are applied and recorded, any other must equal the run's value.
+    The scene must still be the one the run started from (its fingerprint is checked).
+
+    Raises :class:`~splatk.errors.TrainingStalled` when training cannot get past a point (see
+    :class:`~splatk.train.trainer.Trainer`); the checkpoint then holds the last healthy state.
     """
     out = Path(out)
-    state = None
     if resume:
-        scene_path, cfg, state = load_resume_state(out)
-    else:
-        check_run_dir(out, overwrite)  # refuse early; replace only once the inputs checked out
+        with OutputDir(out, RUN_KIND, keep=True):
+            saved_scene, cfg, state = load_resume_state(out)
+            if scene_path is not None and Path(scene_path).resolve() != Path(saved_scene).resolve():
+                raise InputError(scene_path, f"is not the scene of the run in {out} ({saved_scene})",
+                                 "resume without SCENE, or start a new run with another --out")
+            cfg, changes = _apply_resume_options(out, cfg, resume_options or {})
+            check_fit_config(cfg, f"run's {out / 'config.yaml'}")
+            return _fit(saved_scene, out, cfg, state, changes, config_sources, on_start, on_step, should_stop)
+    if cfg is None:
+        cfg = FitConfig()
+    check_fit_config(cfg, config_sources)
+    if scene_path is None:
+        raise InputError(None, "no scene given", "pass the scene folder (or --resume to continue a run)")
+    check_output_dir(out, RUN_KIND, overwrite, inputs=[scene_path])  # refuse before any work
+    return _fit(scene_path, out, cfg, None, {}, config_sources, on_start, on_step, should_stop,
+                overwrite=overwrite)
+
+
+def _apply_resume_options(out: Path, saved: FitConfig, given: dict) -> tuple[FitConfig, dict]:
+    """The run's settings with the options given on resume applied; InputError for one that
+    would change what the run is (kernel, budget, ...). Returns (config, {setting: new value})."""
+    given = {k: v for k, v in given.items() if v is not None}
+    if not given:
+        return saved, {}
+    cfg, _ = fit_config_from_options(given, base=saved)
+    before, after = _flatten(saved.to_dict()), _flatten(cfg.to_dict())
+    changed = {k: after.get(k) for k in sorted(set(before) | set(after)) if before.get(k) != after.get(k)}
+    changeable = {k for k in changed if k.split(".")[-1] in RESUME_CHANGEABLE}
+    refused = [k for k in changed if k not in changeable]
+    if refused:
+        k = refused[0]
+        raise InputError(out / "config.yaml", f"resume would change {k} from {before.get(k)!r} to {after.get(k)!r}",
+                         "resume continues the run as it was started: drop that option, or start a new run "
+                         "with another --out")
+    return cfg, {k: changed[k] for k in changeable}
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    flat = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and k != "background":
+            flat.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            flat[f"{prefix}{k}"] = v
+    return flat
+
+
+def scene_fingerprint(scene) -> str:
+    """A hash of what training reads from the scene: every view's name, size, intrinsics, pose
+    and pixels, and the SfM points."""
+    h = hashlib.sha256()
+    for cam in scene.train + scene.test:
+        h.update(f"{cam.name}|{cam.width}|{cam.height}|{cam.fx}|{cam.fy}|{cam.cx}|{cam.cy}".encode())
+        h.update(cam.world_to_cam.contiguous().numpy().tobytes())
+        if cam.image is not None:
+            h.update(cam.image.contiguous().numpy().tobytes())
+    h.update(scene.points.contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _load_checked_scene(scene_path, cfg: FitConfig):
     resolve_device(cfg.train.device, cfg.train.backend)  # what the trainer will use
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -329,6 +301,20 @@ def run_fit(
         scene.train = scene.train[::cfg.view_stride]
     if len(scene.train) == 0:
         raise InputError(scene_path, "no training images found")
+    return scene
+
+
+def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_changes: dict,
+         config_sources, on_start, on_step, should_stop, overwrite: bool = False) -> Path:
+    """The fit itself, once the settings are checked: ``state`` is the checkpoint to resume."""
+    resume = state is not None
+    scene = _load_checked_scene(scene_path, cfg)
+    fingerprint = scene_fingerprint(scene)
+    if resume:
+        saved_print = (state.get("meta") or {}).get("scene_fingerprint")
+        if saved_print is not None and saved_print != fingerprint:
+            raise InputError(scene_path, "the scene changed since the run started (its images, cameras or points "
+                             "differ from the checkpoint's)", "restore the scene, or start a new run with another --out")
     auto, holdout = None, []
     all_train = list(scene.train)  # the refit of --budget auto trains on every one, in this order
     if cfg.auto_budget is not None:
@@ -336,10 +322,6 @@ def run_fit(
             scene.train, holdout = split_holdout(scene.train, cfg.auto_budget.holdout_every)
         except ValueError as e:
             raise InputError(scene_path, str(e), "use a number for --budget") from None
-        sel = cfg.auto_budget.selection
-        if sel not in ("stages", "short_runs") or (sel == "short_runs" and not cfg.auto_budget.refit):
-            raise InputError(scene_path, f"auto budget selection {sel!r} with refit {cfg.auto_budget.refit}",
-                             "use selection stages, or short_runs with refit true")
         auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.refine_stop)
     selection_train = list(scene.train)  # --budget auto's optimiser views while choosing
     if resume and auto is not None and state.get("auto_budget") is not None:
@@ -352,7 +334,6 @@ def run_fit(
         torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
         model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
         trainer = Trainer(scene, model, cfg.train)
-    ckpt_path = out / "checkpoints" / "last.pt"
     if resume:
         if auto is not None and auto.holdout_returned and not auto.refitting and auto.current_short is None:
             # the optimiser's view list (and its queue) included them
@@ -361,10 +342,20 @@ def run_fit(
         initial_psnr = state.get("initial_psnr")
         del state
         _clean_resume_leftovers(out, trainer.it)
-    else:
-        prepare_run_dir(out, overwrite, resume=False)
+        if resume_changes:
+            _record_resume_changes(out, cfg, resume_changes, trainer.it)
+        return _train(scene_path, out, cfg, scene, fingerprint, trainer, auto, holdout, all_train,
+                      selection_train, initial_psnr, resume, on_start, on_step, should_stop)
+    with OutputDir(out, RUN_KIND, overwrite, inputs=[scene_path]):
         _write_config(out, scene_path, cfg, config_sources or {})
         initial_psnr = render_psnr(trainer.model, scene.test, scene.background, cfg.train.backend)
+        return _train(scene_path, out, cfg, scene, fingerprint, trainer, auto, holdout, all_train,
+                      selection_train, initial_psnr, resume, on_start, on_step, should_stop)
+
+
+def _train(scene_path, out: Path, cfg: FitConfig, scene, fingerprint: str, trainer: Trainer, auto, holdout,
+           all_train, selection_train, initial_psnr, resume: bool, on_start, on_step, should_stop) -> Path:
+    ckpt_path = out / "checkpoints" / "last.pt"
     spec = model_spec(trainer.model, cfg.kernel_options, _color_options(cfg))
     meta = {
         "scene": str(Path(scene_path).resolve()),
@@ -372,10 +363,11 @@ def run_fit(
         "test_every": cfg.test_every,
         "background": list(scene.background),
         "primitive": cfg.primitive,
+        "scene_fingerprint": fingerprint,
     }
     if on_start:
         on_start({"scene": scene, "model": trainer.model, "iters": cfg.train.iters,
-                  "start_it": trainer.it, "backend": cfg.train.backend})
+                  "start_it": trainer.it, "backend": cfg.train.backend, "config": cfg})
 
     saved_it = {"it": trainer.it if resume else None}
     # the trainer whose model is saved: --budget auto's refit replaces the selection's
@@ -422,6 +414,11 @@ def run_fit(
                 trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
         except KeyboardInterrupt:
             interrupted = True
+        except TrainingStalled as stalled:
+            # keep the last healthy state, not the one that could not get past this point
+            current["trainer"].restore_last_healthy()
+            checkpoint(current["trainer"])
+            raise stalled.at(out)
         trainer = current["trainer"]
         checkpoint(trainer)
     finally:
@@ -514,6 +511,16 @@ def _clean_resume_leftovers(out: Path, it: int) -> None:
             except (ValueError, KeyError, TypeError):
                 continue  # a line cut off by the kill
         log.write_text("".join(x + "\n" for x in keep))
+
+
+def _record_resume_changes(out: Path, cfg: FitConfig, changes: dict, it: int) -> None:
+    """config.yaml takes the settings a resume changed, and says so beside each."""
+    path = out / "config.yaml"
+    doc = yaml.safe_load(path.read_text())
+    doc["settings"] = cfg.to_dict()
+    for key, value in changes.items():
+        doc.setdefault("sources", {})[key.split(".")[-1]] = f"changed on resume at iteration {it}: {value}"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
 def _write_config(out: Path, scene_path, cfg: FitConfig, sources: dict) -> None:

@@ -30,6 +30,10 @@ import torch
 
 from ..device import resolve_device
 from ..errors import InputError
+from ..machine import memory_bytes
+from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error
+from ..outputs import OutputDir, check_output_dir
+from .fit_config import MEMORY_SHARE
 from ..metrics import compute_metrics, lpips_available
 from ..models.image2d import (BACKENDS, KERNELS, LATENT_DIM, MAX_SHAPES, Splats2D, bytes_per_primitive,
                               decoder_floats, network_bytes, num_primitives)
@@ -87,6 +91,35 @@ class ImageFitConfig:
     lpips: bool = True
 
 
+#: the marker kind of an image output folder (``splatk.outputs``)
+IMAGE_KIND = "image fit"
+#: memory per photo pixel while fitting, an upper estimate: the float target, the render, its
+#: gradient and the per-splat tile lists
+BYTES_PER_PIXEL = 64
+#: memory per splat while fitting, an upper estimate: at most 16 floats with gradient and Adam
+BYTES_PER_SPLAT = 512
+
+IMAGE_RULES = [
+    ("kernel", choice(*KERNELS)), ("budget_bytes", int_range(1)), ("iters", int_range(1, 10**8)),
+    ("seed", int_range(0, 2**63 - 1)), ("downscale", int_range(1, 10**4)), ("grid", int_range(2, 256)),
+    ("exact", BOOL), ("latent_dim", int_range(0, 64)), ("shapes", int_range(0, MAX_SHAPES)),
+    ("shape_start", float_range(0.0, 1.0)), ("backend", choice(*BACKENDS)),
+    ("lr_xy", float_range(0.0)), ("lr_chol", float_range(0.0)), ("lr_color", float_range(0.0)),
+    ("lr_kernel", float_range(0.0)), ("lr_net", float_range(0.0)), ("lpips", BOOL),
+]
+
+
+def check_image_config(cfg: ImageFitConfig, sources: dict | None = None) -> None:
+    """InputError naming the first setting of ``cfg`` of the wrong type or out of range; the
+    byte budget is capped by what this machine's memory can train."""
+    for name, rule in IMAGE_RULES:
+        check_value(name, getattr(cfg, name), rule, sources)
+    cap = int(MEMORY_SHARE * memory_bytes() / BYTES_PER_SPLAT) * 4  # at least 4 bytes per splat
+    if cfg.budget_bytes > cap:
+        raise option_error("budget_bytes", cfg.budget_bytes, "holds more splats than this machine's memory can "
+                           "train", f"give at most {cap:,} bytes", (sources or {}).get("budget_bytes"))
+
+
 def load_photo(path: Path, downscale: int = 1) -> torch.Tensor:
     """[H, W, 3] float in [0, 1]; box-downscaled by an integer factor."""
     from PIL import Image
@@ -95,7 +128,15 @@ def load_photo(path: Path, downscale: int = 1) -> torch.Tensor:
     if not path.is_file():
         raise InputError(path, "photo not found", "pass an existing PNG/JPEG file")
     try:
-        img = Image.open(path).convert("RGB")
+        img = Image.open(path)
+        # the header's size, before any pixel is decoded: a small file may claim a huge image
+        pixels_fit = int(MEMORY_SHARE * memory_bytes() / BYTES_PER_PIXEL)
+        if img.width * img.height > pixels_fit:
+            raise InputError(path, f"the image is {img.width} x {img.height} pixels, more than this machine's "
+                             f"memory can fit ({pixels_fit:,} pixels)", "pass a smaller photo")
+        img = img.convert("RGB")
+    except InputError:
+        raise
     except Exception as e:  # PIL raises several types for unreadable files
         raise InputError(path, f"cannot read image ({e})", "pass a PNG or JPEG photo") from e
     t = torch.from_numpy(np.asarray(img, dtype=np.float32) / 255.0)
@@ -258,13 +299,16 @@ def run_image_fit(photo: Path, out: Path, cfg: ImageFitConfig, overwrite: bool =
                   on_step: Callable[[int, int, float, float], None] | None = None) -> Path:
     """Fit ``photo`` and write the artefacts into ``out``; returns ``out / "metrics.json"``."""
     out = Path(out)
-    if (out / "metrics.json").exists() and not overwrite:
-        raise InputError(out, "already holds a result", "pass --overwrite or choose another --out")
-    if cfg.downscale < 1:
-        raise InputError(None, f"downscale must be >= 1, got {cfg.downscale}")
+    check_image_config(cfg)
+    check_output_dir(out, IMAGE_KIND, overwrite, inputs=[photo])  # before any work
     target = load_photo(photo, cfg.downscale)
     model, summary = fit_image(target, cfg, on_step)
-    out.mkdir(parents=True, exist_ok=True)
+    with OutputDir(out, IMAGE_KIND, overwrite, inputs=[photo]):
+        return _write_result(out, photo, target, model, summary, cfg)
+
+
+def _write_result(out: Path, photo: Path, target: torch.Tensor, model, summary: dict, cfg: ImageFitConfig) -> Path:
+    """Write the artefacts of a finished fit into ``out``; returns ``out / "metrics.json"``."""
     with torch.no_grad():
         img = model.render().clamp(0, 1)
     save_png(img, out / "render.png")

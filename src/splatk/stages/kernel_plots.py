@@ -95,7 +95,32 @@ def _curves(profile, rows: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     return evaluate_profile(profile.kind, r2, params).view(len(rows), len(r))
 
 
+#: the marker kind of a kernel-plots folder (``splatk.outputs``)
+KERNEL_PLOTS_KIND = "kernel plots"
+
+
 def export_kernel_plots(
+    run: str | Path,
+    out: str | Path,
+    backend: str = "auto",
+    scene_path: str | Path | None = None,
+    num_views: int = 6,
+    num_primitives: int = 4,
+    render: bool = True,
+    overwrite: bool = False,
+) -> Path:
+    """Write the kernel figures and ``kernels.json`` for RUN into folder ``out`` (new, empty, or
+    with ``overwrite`` an earlier kernel-plots export); returns it. Arguments as
+    :func:`_write_kernel_plots`'s."""
+    from ..outputs import OutputDir, check_output_dir
+
+    inputs = [Path(run), scene_path]
+    check_output_dir(Path(out), KERNEL_PLOTS_KIND, overwrite, inputs=inputs)
+    with OutputDir(Path(out), KERNEL_PLOTS_KIND, overwrite, inputs=inputs):
+        return _write_kernel_plots(run, out, backend, scene_path, num_views, num_primitives, render)
+
+
+def _write_kernel_plots(
     run: str | Path,
     out: str | Path,
     backend: str = "auto",

@@ -28,6 +28,10 @@ import pycolmap
 
 from ..data._common import check_image_file, image_size
 from ..errors import InputError
+from ..outputs import check_output_dir, write_marker
+
+#: the marker kind of a scene folder `splatk sfm` wrote (``splatk.outputs``)
+SFM_KIND = "sfm scene"
 
 #: file suffixes taken as photos (compared in lower case); other files in IMAGES are ignored
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
@@ -73,15 +77,10 @@ def check_inputs(images_dir: Path, out_dir: Path, overwrite: bool, camera_model:
     if out == src or out in src.parents:
         raise InputError(out_dir, "output folder would contain or replace the input photos",
                          "choose an --out outside the image folder (the scene gets its own images/)")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(out_dir, "output path exists and is a file, not a folder", "choose another --out")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise InputError(out_dir, "output folder exists and is not empty", "pass --overwrite or choose another --out")
+    check_output_dir(out_dir, SFM_KIND, overwrite, inputs=[images_dir])
     parent = out.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
-    if not parent.is_dir():
-        raise InputError(out_dir, f"cannot create output folder: {parent} is not a folder", "choose a writable --out")
     try:
         with tempfile.TemporaryFile(dir=parent):
             pass
@@ -250,6 +249,7 @@ def run_sfm(
             "seconds": {k_: round(v, 2) for k_, v in seconds.items()},
         }
         (scene / "sfm.json").write_text(json.dumps(summary, indent=2) + "\n")
+        write_marker(scene, SFM_KIND)
         _put_in_place(scene, out_dir, work)
     finally:
         shutil.rmtree(work, ignore_errors=True)

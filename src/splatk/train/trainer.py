@@ -25,6 +25,7 @@ from torch import nn
 from ..backends import resolve_backend
 from ..backends.fused_cpu import use_fused
 from ..data.types import Scene
+from ..errors import TrainingStalled
 from ..models.volumetric import SplatModel
 from .losses import photometric_loss, regularisers
 from .mcmc import MCMCConfig, MCMCStrategy
@@ -58,6 +59,17 @@ VANISHED_SCALE = 1e-4
 #: minutes of training, the step size down to x0.002, without getting past iteration 400 (a
 #: whole 200k run takes 8 minutes).
 MAX_REPEATED_LOSS_ROLLBACKS = 3
+#: rollbacks to one snapshot, each at half the step size of the one before, after which the
+#: fit stops (TrainingStalled): at 1/256 of the step size a failure that still comes back is not
+#: the step size's doing, and going on would loop without end
+MAX_ROLLBACKS_WITHOUT_PROGRESS = 8
+#: what to tell the user when rollbacks of each kind do not help
+STALL_CAUSES = {
+    "nan_rollback": "the loss or the parameters turn non-finite whatever the step size: degenerate "
+                    "cameras or images, or settings far outside their range (lr_scale, noise_lr)",
+    "loss_rollback": "the model collapses or diverges whatever the step size: a budget too small for the "
+                     "scene, or learning rates or regularisers far from their defaults",
+}
 
 
 @dataclass
@@ -164,6 +176,8 @@ class Trainer:
         # the next snapshot); the series: [snapshot iteration, rollbacks, step size before them]
         self._loss_check = True
         self._loss_rollback_series: list | None = None
+        # [snapshot iteration, rollbacks to it]: MAX_ROLLBACKS_WITHOUT_PROGRESS stops the fit
+        self._rollbacks_to_snapshot: list | None = None
 
     # ---- optimisers and schedules ------------------------------------------------------
     def _build_optimizers(self) -> None:
@@ -333,8 +347,15 @@ class Trainer:
 
     def _rollback(self, reason: str, kind: str = "nan_rollback", loss_rise: bool = False) -> str:
         """Never die of a NaN (or a collapse): restore the last good state, halve the step
-        sizes, go on."""
+        sizes, go on; stop (TrainingStalled) when that keeps failing from the same state."""
         it, lr_scale = self.it, self.lr_scale
+        snap_it = self._snapshot["it"] if self._snapshot is not None else None
+        count = self._rollbacks_to_snapshot
+        self._rollbacks_to_snapshot = [snap_it, count[1] + 1 if count and count[0] == snap_it else 1]
+        if self._rollbacks_to_snapshot[1] > MAX_ROLLBACKS_WITHOUT_PROGRESS:
+            self.events.append({"iteration": it, "event": "stalled", "message": f"iteration {it}: {reason}"})
+            raise TrainingStalled(f"iteration {it}: {reason}, after {MAX_ROLLBACKS_WITHOUT_PROGRESS} rollbacks to "
+                                  f"iteration {snap_it} at ever smaller step sizes", STALL_CAUSES[kind])
         if loss_rise and self._snapshot is not None:
             series = self._loss_rollback_series
             if series is not None and series[0] == self._snapshot["it"]:
@@ -342,11 +363,9 @@ class Trainer:
             else:
                 self._loss_rollback_series = [self._snapshot["it"], 1, lr_scale]
         if self._snapshot is not None:
-            # the clock, the event log and the step-size cut survive the restore: restoring the
-            # snapshot's own lr_scale would retry the same diverging steps forever
-            elapsed, events = self.elapsed, list(self.events)
-            self.load_state_dict(self._snapshot)
-            self.elapsed, self.events = elapsed, events
+            # the step-size cut below survives the restore: restoring the snapshot's own
+            # lr_scale would retry the same diverging steps forever
+            self.restore_last_healthy()
         else:  # NaN before the first snapshot: drop the non-finite primitives' updates
             with torch.no_grad():
                 for p in self.model.prims.values():
@@ -361,6 +380,14 @@ class Trainer:
         msg = f"iteration {it}: {reason}; rolled back to iteration {self.it}, step size x{self.lr_scale:g}"
         self.events.append({"iteration": it, "event": kind, "message": msg})
         return msg
+
+    def restore_last_healthy(self) -> None:
+        """Go back to the last snapshot taken while training was healthy (keeping the clock and
+        the event log), e.g. to checkpoint it when training stalls."""
+        if self._snapshot is not None:
+            elapsed, events = self.elapsed, list(self.events)
+            self.load_state_dict(self._snapshot)
+            self.elapsed, self.events = elapsed, events
 
     # ---- the loop ----------------------------------------------------------------------
     def done(self) -> bool:

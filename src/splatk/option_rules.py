@@ -1,0 +1,72 @@
+"""Option rules: a setting's type and range, checked with one error format.
+
+A rule is a small tuple: ``int_range(lo, hi)``, ``float_range(lo, hi, lo_open)``,
+``choice(*values)`` or ``BOOL``. :func:`option_error` words the one-line error the CLI prints:
+``splatk: error: --sh-degree 7 (from the preset fast.yaml): must be ... (give ...)``.
+"""
+from __future__ import annotations
+
+import math
+
+from .errors import InputError
+
+BOOL = ("bool",)
+
+
+def int_range(lo, hi=None):
+    """A whole number (not a bool) from ``lo`` to ``hi`` (None: no upper end)."""
+    return ("int", lo, hi)
+
+
+def float_range(lo, hi=None, lo_open=False):
+    """A finite number from ``lo`` (excluded when ``lo_open``) to ``hi``."""
+    return ("float", lo, hi, lo_open)
+
+
+def choice(*values):
+    """One of the given strings."""
+    return ("choice", values)
+
+
+def describe(rule) -> str:
+    kind = rule[0]
+    if kind == "choice":
+        return "one of " + ", ".join(map(str, rule[1]))
+    if kind == "bool":
+        return "true or false"
+    lo, hi = rule[1], rule[2]
+    what, fmt = ("a whole number", "{:,}") if kind == "int" else ("a number", "{:g}")
+    if hi is None:
+        return f"{what} {'above' if kind == 'float' and rule[3] else 'of at least'} {fmt.format(lo)}"
+    return f"{what} from {fmt.format(lo)} to {fmt.format(hi)}"
+
+
+def valid(value, rule) -> bool:
+    kind = rule[0]
+    if kind == "choice":
+        return isinstance(value, str) and value in rule[1]
+    if kind == "bool":
+        return isinstance(value, bool)
+    if isinstance(value, bool):
+        return False
+    if kind == "int":
+        if not isinstance(value, int):
+            return False
+    elif not isinstance(value, (int, float)) or not math.isfinite(value):
+        return False
+    lo, hi = rule[1], rule[2]
+    if kind == "float" and rule[3] and value <= lo:
+        return False
+    return value >= lo and (hi is None or value <= hi)
+
+
+def option_error(name: str, value, problem: str, fix: str, source: str | None = None) -> InputError:
+    where = f" (from the {source})" if source and source not in ("default", "command line") else ""
+    return InputError(None, f"--{name.replace('_', '-')} {value!r}{where}: {problem}", fix)
+
+
+def check_value(name: str, value, rule, sources: dict | None = None) -> None:
+    """InputError unless ``value`` satisfies ``rule`` (``name``: the flag, without dashes)."""
+    if not valid(value, rule):
+        raise option_error(name, value, f"must be {describe(rule)}", f"give {describe(rule)}",
+                           (sources or {}).get(name))

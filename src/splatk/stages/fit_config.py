@@ -1,0 +1,377 @@
+"""`splatk fit`'s settings: the dataclass, the one translator from flat options, the checks.
+
+Options reach a fit from the command line, the ``SPLATK_*`` environment, a preset, a bench
+method or a resumed run's ``config.yaml``. All of them go through :func:`fit_config_from_options`
+(flat names as the command line spells them) and every resulting :class:`FitConfig` through
+:func:`check_fit_config` before anything is read or written: one schema, one error format, the
+same one-line style as the loaders (``splatk: error: --sh-degree 7: must be 0 to 3 (...)``).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import asdict, dataclass, field, fields
+
+import torch
+
+from ..errors import InputError
+from ..machine import memory_bytes
+from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
+from ..train.trainer import TrainConfig
+from .autobudget import AutoBudgetConfig
+
+PRIMITIVES = ("volumetric", "planar")
+
+
+@dataclass
+class FitConfig:
+    """Everything `splatk fit` can be told. Presets (YAML) and flags fill these fields."""
+
+    #: splatting kernel: gaussian | beta | student_t | learned
+    kernel: str = "gaussian"
+    #: kernel options (learned: k, latent dims, widths, weights file ...)
+    kernel_options: dict = field(default_factory=dict)
+    #: colour model: sh (spherical harmonics) | sb (spherical Beta)
+    color: str = "sh"
+    #: maximum SH degree (raised by one every `sh_degree_interval` iterations)
+    sh_degree: int = 3
+    #: number of spherical-Beta lobes (color = sb)
+    sb_lobes: int = 2
+    #: primitive type: volumetric (3D ellipsoids) | planar (2D surfels)
+    primitive: str = "volumetric"
+    #: image downscale factor
+    downscale: float = 1.0
+    #: every n-th image is a test view when the dataset names none
+    test_every: int = 8
+    #: train on every n-th train view only (4: a quarter of them); test views are unaffected
+    view_stride: int = 1
+    #: background colour for RGBA data and renders (None: the loader's default)
+    background: list | None = None
+    #: rasteriser backend: auto | torch | cpu
+    backend: str = "auto"
+    #: torch device
+    device: str = "cpu"
+    #: torch threads (0: all cores)
+    threads: int = 0
+    #: checkpoint every n iterations (and on Ctrl-C)
+    checkpoint_every: int = 1000
+    #: choose the budget from held-out train views (`--budget auto`); None: use train.budget
+    auto_budget: AutoBudgetConfig | None = None
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FitConfig":
+        d = dict(d)
+        train = TrainConfig(**d.pop("train", {}))
+        if isinstance(d.get("auto_budget"), dict):
+            d["auto_budget"] = AutoBudgetConfig(**d["auto_budget"])
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown fit settings: {', '.join(sorted(unknown))}")
+        return cls(train=train, **d)
+
+
+_FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train", "auto_budget"}
+_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)}
+#: flat option names besides FitConfig / TrainConfig fields
+EXTRA_OPTIONS = ("k", "weights", "kernel_weights", "budget_bytes", "kernel_options", "auto_budget", "name")
+
+
+# ---- values as a user writes them ---------------------------------------------------------------
+def parse_bytes(value) -> int:
+    """4194304, "4MB", "512KB", "1.5GB" -> bytes (K/M/G are powers of 1024, as footprint_mb)."""
+    if isinstance(value, bool):
+        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
+    if isinstance(value, (int, float)) and math.isfinite(value):
+        return int(value)
+    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([kmg]?)(i?b)?\s*", str(value).lower())
+    if not m:
+        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
+    return int(float(m.group(1)) * {"": 1, "k": 2**10, "m": 2**20, "g": 2**30}[m.group(2)])
+
+
+_DURATION = re.compile(r"(\d+(?:\.\d+)?)\s*([hms]?)")
+
+
+def parse_duration(text) -> float | None:
+    """'10m', '90s', '1h30m', '600' (seconds) -> seconds."""
+    if text is None:
+        return None
+    if isinstance(text, bool):
+        raise ValueError(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
+    if isinstance(text, (int, float)):
+        return float(text)
+    s = str(text).strip().lower().replace(" ", "")
+    if not s:
+        return None
+    total, pos = 0.0, 0
+    for m in _DURATION.finditer(s):
+        if m.start() != pos:
+            break
+        total += float(m.group(1)) * {"h": 3600, "m": 60, "s": 1, "": 1}[m.group(2)]
+        pos = m.end()
+    if pos != len(s):
+        raise ValueError(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
+    return total
+
+
+# ---- the one translator -------------------------------------------------------------------------
+def fit_config_from_options(options: dict, sources: dict | None = None,
+                            base: FitConfig | None = None) -> tuple[FitConfig, dict]:
+    """Flat options (command-line names: ``kernel``, ``k``, ``budget``, ``budget_bytes``,
+    ``time_budget``, ``iters``, any FitConfig or TrainConfig field) -> (FitConfig, notes).
+
+    ``None`` values mean "not given". ``base`` (default: the defaults) is the config the
+    options apply to. ``notes`` say how derived values (the budget from bytes) were found.
+    Unknown names and unreadable values are InputErrors; ranges are :func:`check_fit_config`'s.
+    """
+    sources = sources or {}
+    opts = {k.replace("-", "_"): v for k, v in options.items() if v is not None}
+    cfg = FitConfig.from_dict(base.to_dict()) if base is not None else FitConfig()
+    notes: dict = {}
+    unknown = sorted(set(opts) - _FIT_FIELDS - _TRAIN_FIELDS - set(EXTRA_OPTIONS))
+    if unknown:
+        src = sources.get(unknown[0])
+        raise InputError(None, f"unknown fit setting {unknown[0]!r}" + (f" (from the {src})" if src else ""),
+                         "see `splatk fit --help` for the settings")
+    opts.pop("name", None)
+    kernel_options = dict(cfg.kernel_options)
+    if isinstance(opts.get("kernel_options"), dict):
+        kernel_options.update(opts.pop("kernel_options"))
+    elif "kernel_options" in opts:
+        raise option_error("kernel_options", opts["kernel_options"], "must be a mapping", "write kernel_options: {k: 4}",
+                            sources.get("kernel_options"))
+    for key in ("kernel", "primitive"):
+        if key in opts:
+            setattr(cfg, key, opts.pop(key))
+    planar = cfg.primitive == "planar"
+    if "k" in opts:
+        k = opts.pop("k")
+        if cfg.kernel == "learned" and not planar:  # the planar learned kernel has no k
+            kernel_options["k"] = k
+    for key in ("weights", "kernel_weights"):
+        if key in opts:
+            w = opts.pop(key)
+            if cfg.kernel == "learned":
+                kernel_options["weights"] = "none" if w is None else str(w)
+    cfg.kernel_options = kernel_options
+    auto_options = opts.pop("auto_budget", None)
+    budget_bytes = opts.pop("budget_bytes", None)
+    budget = opts.pop("budget", None)
+    if "time_budget" in opts:
+        raw = opts.pop("time_budget")
+        try:
+            cfg.train.time_budget = parse_duration(raw)
+        except ValueError as e:
+            raise option_error("time_budget", raw, str(e).split(" (")[0], "examples: 10m, 90s, 1h30m",
+                                sources.get("time_budget")) from None
+        if "iters" not in opts and cfg.train.time_budget is not None:
+            cfg.train.iters = 10**9  # the clock decides (with iters too, whichever ends first)
+    for key, value in opts.items():
+        target = cfg if key in _FIT_FIELDS else cfg.train
+        setattr(target, key, value)
+    cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
+    if budget_bytes is not None:
+        try:
+            total = parse_bytes(budget_bytes)
+        except ValueError as e:
+            raise option_error("budget_bytes", budget_bytes, str(e).split(" (")[0], "examples: 4194304, 4MB, 512KB",
+                                sources.get("budget_bytes")) from None
+        check_fit_config(cfg, sources)  # the model below is built from these settings
+        per_prim, nets = bytes_per_primitive(cfg)
+        if total - nets < per_prim:
+            raise option_error("budget_bytes", budget_bytes, f"holds no primitive ({per_prim} bytes each, "
+                                f"{nets} for the kernel's networks)", f"give at least {nets + per_prim} bytes",
+                                sources.get("budget_bytes"))
+        cfg.train.budget = (total - nets) // per_prim
+        notes["budget"] = {"budget_bytes": total, "bytes_per_primitive": per_prim, "network_bytes": nets,
+                           "budget": cfg.train.budget,
+                           "rule": "budget = (budget_bytes - network_bytes) // bytes_per_primitive"}
+    elif budget is not None:
+        text = str(budget).strip().lower()
+        if text.startswith("auto"):
+            cfg.auto_budget = AutoBudgetConfig(**(auto_options or {}))
+            ref = text[4:].lstrip(":")
+            if ref:
+                cfg.train.budget = _read_count("budget", budget, ref, sources)
+            notes["budget"] = {"auto": True, "reference_budget": cfg.train.budget}
+        else:
+            cfg.train.budget = _read_count("budget", budget, budget, sources)
+    return cfg, notes
+
+
+def _read_count(name: str, given, text, sources: dict) -> int:
+    if isinstance(text, bool):
+        text = "?"
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise option_error(name, given, "not a number of primitives", "give a whole number, or auto / auto:N",
+                            sources.get(name)) from None
+    if not math.isfinite(value) or value != int(value):
+        raise option_error(name, given, "not a whole number", "give a whole number of primitives",
+                            sources.get(name))
+    return int(value)
+
+
+def bytes_per_primitive(cfg: FitConfig) -> tuple[int, int]:
+    """(bytes per primitive, bytes of the global networks) of the model `fit` builds with ``cfg``,
+    counted from the model itself: 4 x ``floats_per_primitive()`` and 4 x network parameters."""
+    from ..models.planar import PlanarModel
+    from ..models.volumetric import SplatModel
+
+    model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
+    model = model_class.from_points(torch.zeros(1, 3), torch.zeros(1, 3), kernel=cfg.kernel, color=cfg.color,
+                                    kernel_options=cfg.kernel_options, color_options=color_options(cfg))
+    return 4 * model.floats_per_primitive(), 4 * sum(p.numel() for p in model.kernel.parameters())
+
+
+def color_options(cfg: FitConfig) -> dict:
+    return {"sh_degree": cfg.sh_degree} if cfg.color == "sh" else {"num_lobes": cfg.sb_lobes}
+
+
+# ---- the schema ----------------------------------------------------------------------------------
+#: training memory per float of a primitive's parameters, an upper estimate: the parameter, its
+#: gradient and Adam's two moments take 16 bytes; the rest covers the projected copies, the
+#: rollback snapshot, the checkpoint being written and the rasteriser's per-pixel lists
+TRAIN_BYTES_PER_FLOAT = 50
+#: a fit may plan on at most this share of the machine's memory
+MEMORY_SHARE = 0.5
+#: the largest thread count accepted: OpenMP starts this many threads per parallel region
+MAX_THREADS = 1024
+
+
+#: (setting path, flag name, rule). Kernel and colour options are checked by building them.
+RULES = [
+    ("color", "color", choice("sh", "sb")),
+    ("sh_degree", "sh_degree", int_range(0, 3)),
+    ("sb_lobes", "sb_lobes", int_range(1, 64)),
+    ("primitive", "primitive", choice(*PRIMITIVES)),
+    ("downscale", "downscale", float_range(1.0, 1e4)),
+    ("test_every", "test_every", int_range(1)),
+    ("view_stride", "view_stride", int_range(1)),
+    ("threads", "threads", int_range(0, MAX_THREADS)),
+    ("checkpoint_every", "checkpoint_every", int_range(1)),
+    ("train.iters", "iters", int_range(1, 10**9)),
+    ("train.time_budget", "time_budget", float_range(0.0, None, lo_open=True)),
+    ("train.budget", "budget", int_range(1)),
+    ("train.init", "init", choice("auto", "sfm", "random")),
+    ("train.random_points", "random_points", int_range(1)),
+    ("train.init_scale", "init_scale", float_range(0.0)),
+    ("train.seed", "seed", int_range(0, 2**63 - 1)),
+    ("train.lambda_dssim", "lambda_dssim", float_range(0.0, 1.0)),
+    ("train.opacity_reg", "opacity_reg", float_range(0.0)),
+    ("train.scale_reg", "scale_reg", float_range(0.0)),
+    ("train.means_lr", "means_lr", float_range(0.0, None, lo_open=True)),
+    ("train.means_lr_final", "means_lr_final", float_range(0.0, None, lo_open=True)),
+    ("train.sh_degree_interval", "sh_degree_interval", int_range(1)),
+    ("train.refine_every", "refine_every", int_range(1)),
+    ("train.refine_start", "refine_start", int_range(0)),
+    ("train.refine_stop", "refine_stop", float_range(0.0, 1.0)),
+    ("train.noise_lr", "noise_lr", float_range(0.0)),
+    ("train.split_scales", "split_scales", choice("keep", "shrink")),
+    ("train.hold_growth", "hold_growth", BOOL),
+    ("train.lr_scale", "lr_scale", float_range(0.0, 1e4, lo_open=True)),
+    ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, 1e4, lo_open=True)),
+    ("train.snapshot_every", "snapshot_every", int_range(1)),
+    ("train.divergence_factor", "divergence_factor", float_range(0.0)),
+]
+
+
+def _get(cfg: FitConfig, path: str):
+    obj = cfg
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def train_bytes_per_primitive(cfg: FitConfig) -> int:
+    """Upper estimate of the memory one primitive takes while training with ``cfg``."""
+    floats = 59 if cfg.color == "sh" else 30  # SH degree 3: 48 colour floats; Beta lobes fewer
+    floats += 8  # latents, per-primitive kernel parameters
+    return TRAIN_BYTES_PER_FLOAT * floats
+
+
+def max_budget(cfg: FitConfig) -> int:
+    """The most primitives a fit with ``cfg`` can hold in this machine's memory share."""
+    return max(1, int(MEMORY_SHARE * memory_bytes() / train_bytes_per_primitive(cfg)))
+
+
+def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
+    """InputError naming the first setting of ``cfg`` that is of the wrong type or out of range,
+    where it came from (``sources``: flag name -> "command line", "preset ...", ...; a string
+    names one source for all) and what is allowed. Checks kernel and colour options by building them, and caps the budget at what
+    this machine's memory holds."""
+    from ..backends import backend_names
+    from ..colors import make_color_model
+    from ..kernels import KERNELS, make_kernel
+    from ..kernels.planar import PLANAR_KERNELS, make_planar_kernel
+
+    if isinstance(sources, str):
+        sources = {name: sources for _, name, _ in RULES} | {
+            n: sources for n in ("backend", "device", "background", "kernel", "kernel_options", "kernel_weights",
+                                 "budget", "random_points", "auto_budget")}
+    sources = sources or {}
+    for path, name, rule in RULES:
+        value = _get(cfg, path)
+        if value is None and path in ("train.time_budget", "train.random_points"):
+            continue
+        check_value(name, value, rule, sources)
+    backends = ["auto", *backend_names()]
+    if cfg.backend not in backends:
+        raise option_error("backend", cfg.backend, f"must be one of {', '.join(backends)}",
+                            f"use --backend {' or '.join(backends)}", sources.get("backend"))
+    if not isinstance(cfg.device, str):
+        raise option_error("device", cfg.device, "must be a device name", "use cpu, cuda, cuda:N or mps",
+                            sources.get("device"))
+    if cfg.background is not None and not (
+            isinstance(cfg.background, (list, tuple)) and len(cfg.background) == 3
+            and all(valid(c, float_range(0.0, 1.0)) for c in cfg.background)):
+        raise option_error("background", cfg.background, "must be three numbers from 0 to 1",
+                            "e.g. background: [1, 1, 1]", sources.get("background"))
+    kernels = PLANAR_KERNELS if cfg.primitive == "planar" else KERNELS
+    if cfg.kernel not in kernels:
+        raise option_error("kernel", cfg.kernel, f"is not a {cfg.primitive} kernel",
+                            f"use one of {', '.join(sorted(kernels))}", sources.get("kernel"))
+    if not isinstance(cfg.kernel_options, dict):
+        raise option_error("kernel_options", cfg.kernel_options, "must be a mapping", "e.g. kernel_options: {k: 4}",
+                            sources.get("kernel_options"))
+    options = dict(cfg.kernel_options)
+    if "weights" in options:
+        options["weights"] = "none"  # the file is read (and checked) when the model is built
+    try:
+        if cfg.primitive == "planar":
+            make_planar_kernel(cfg.kernel, **options)
+        else:
+            make_kernel(cfg.kernel, **options)
+        make_color_model(cfg.color, **color_options(cfg))
+    except (ValueError, TypeError) as e:
+        raise InputError(None, f"kernel {cfg.kernel!r} options {cfg.kernel_options}: {e}",
+                         "see `splatk fit --help` for the learned kernel's options") from None
+    weights = cfg.kernel_options.get("weights")
+    if weights is not None and not isinstance(weights, str):
+        raise option_error("kernel_weights", weights, "must be a file path", "give the path of `splatk pretrain`'s output",
+                            sources.get("kernel_weights"))
+    cap = max_budget(cfg)
+    for path, name in (("train.budget", "budget"), ("train.random_points", "random_points")):
+        value = _get(cfg, path)
+        if value is not None and value > cap:
+            raise option_error(name, value, f"needs about {value * train_bytes_per_primitive(cfg) / 2**30:.1f} GiB to train, "
+                                f"more than half of this machine's {memory_bytes() / 2**30:.0f} GiB",
+                                f"at most {cap:,} primitives fit here", sources.get(name))
+    if cfg.auto_budget is not None:
+        ab = cfg.auto_budget
+        if not valid(ab.holdout_every, int_range(2)):
+            raise option_error("auto_budget.holdout_every", ab.holdout_every, "must be a whole number of at least 2",
+                                "give at least 2", sources.get("auto_budget"))
+        if ab.selection not in ("stages", "short_runs") or (ab.selection == "short_runs" and not ab.refit):
+            raise InputError(None, f"auto budget selection {ab.selection!r} with refit {ab.refit}",
+                             "use selection stages, or short_runs with refit true")
+        if cfg.train.budget * ab.max_factor > cap:
+            raise option_error("budget", f"auto:{cfg.train.budget}", f"may try {ab.max_factor:g}x the reference "
+                                f"budget, more than this machine's memory holds", f"use auto:N with N at most "
+                                f"{int(cap / ab.max_factor):,}", sources.get("budget"))
