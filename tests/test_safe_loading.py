@@ -236,3 +236,10 @@ def test_refusal_is_an_input_error(tmp_path):
         load_torch_file(path, "re-run `splatk fit`")
     assert e.value.path == path and e.value.fix == "re-run `splatk fit`"
     assert not sentinel.exists()
+
+
+def test_model_file_without_its_parts_is_an_input_error(run_copy):
+    torch.save({"format": "splatk-model", "version": 1}, run_copy / "model.pt")
+    res = CliRunner().invoke(cli, ["eval", str(run_copy), "--backend", "torch"])
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    assert res.output.startswith(f"splatk: error: {run_copy / 'model.pt'}: model file is incomplete"), res.output
