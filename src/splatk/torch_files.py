@@ -10,6 +10,7 @@ as images.
 from __future__ import annotations
 
 import pickle
+import warnings
 from pathlib import Path
 
 import torch
@@ -35,7 +36,11 @@ def load_torch_file(path: str | Path, fix: str, map_location: str | torch.device
             words that error for its kind of file).
     """
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():
+            # torch warns about pickle protocols it did not write; the file is read or refused
+            # all the same, and a refusal is our one-line error
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
         # torch names the refused class or function as "GLOBAL module.name"; other unpickling
         # errors (an unknown opcode in random bytes) are corrupt files, left to the caller
