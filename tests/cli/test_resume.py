@@ -103,7 +103,7 @@ def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == -signal.SIGKILL
-    ckpt_it = torch.load(run / "checkpoints" / "last.pt", weights_only=False)["trainer"]["it"]
+    ckpt_it = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["trainer"]["it"]
     assert ckpt_it % 200 == 0 and 200 <= ckpt_it < 600, ckpt_it
     assert not (run / "model.pt").exists()
 
@@ -123,7 +123,7 @@ def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
             proc.kill()
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "--resume" in err, err
-    stop_it = torch.load(run / "checkpoints" / "last.pt", weights_only=False)["trainer"]["it"]
+    stop_it = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["trainer"]["it"]
     assert 700 <= stop_it < ITERS, stop_it
 
     res = subprocess.run(splatk("fit", "--resume", "--out", run, "-q"), env=env, capture_output=True,
@@ -145,7 +145,7 @@ def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
         # reduction order, far below what a wrong view order or generator state changes (~1e-2)
         assert b["loss"] == pytest.approx(a["loss"], rel=1e-4), (a, b)
         assert b["num"] == a["num"]
-    models = [torch.load(r / "model.pt", weights_only=False)["prims"] for r in (ref, run)]
+    models = [torch.load(r / "model.pt", weights_only=True)["prims"] for r in (ref, run)]
     for k in models[0]:
         assert torch.allclose(models[0][k], models[1][k], atol=1e-4), k
 

@@ -39,7 +39,7 @@ def test_metrics_of_written_pngs(pair):
     else:
         assert out["lpips"] is None and out["warnings"]
     only = compare_images(a, b, metrics=("psnr",))
-    assert set(only) == {"psnr", "lpips_net", "size"}
+    assert set(only) == {"psnr", "identical", "lpips_net", "background", "size"} and only["identical"] is False
 
 
 def test_reads_rgb_order_alpha_and_16bit(tmp_path):
@@ -52,7 +52,9 @@ def test_reads_rgb_order_alpha_and_16bit(tmp_path):
     got = read_rgb(tmp_path / "rgb.png")
     assert got.shape == (4, 5, 3) and got.dtype == np.float32
     np.testing.assert_allclose(got[0, 0], [200 / 255, 0, 0])
-    np.testing.assert_array_equal(read_rgb(tmp_path / "rgba.png"), got)  # alpha dropped
+    # alpha 0: the background shows, white unless told (as scene loading composites it)
+    np.testing.assert_array_equal(read_rgb(tmp_path / "rgba.png"), np.ones((4, 5, 3), np.float32))
+    np.testing.assert_array_equal(read_rgb(tmp_path / "rgba.png", (0.0, 0.0, 0.0)), np.zeros((4, 5, 3), np.float32))
     np.testing.assert_allclose(read_rgb(tmp_path / "grey16.png"), 1.0)
 
 

@@ -199,7 +199,7 @@ def test_resume_inside_a_control_branch_gives_the_uninterrupted_result(scene, tm
 
     part = tmp_path / "part"
     run_fit(scene, part, cfg, should_stop=stop)
-    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)["auto_budget"]
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=True)["auto_budget"]
     assert state["branch"] == "control" and state["grown"] is not None
     run_fit(scene, part, cfg, resume=True)
     rep = json.loads((part / "fit.json").read_text())["auto_budget"]
@@ -239,8 +239,8 @@ def test_refit_is_the_fixed_run_at_the_chosen_budget(scene, tmp_path):
     fixed = json.loads((fixed_run / "fit.json").read_text())
     assert rep["train_views"] == fixed["train_views"] == 7
     assert rep["initial_psnr"] == pytest.approx(fixed["initial_psnr"])
-    a = torch.load(auto_run / "model.pt", weights_only=False)
-    b = torch.load(fixed_run / "model.pt", weights_only=False)
+    a = torch.load(auto_run / "model.pt", weights_only=True)
+    b = torch.load(fixed_run / "model.pt", weights_only=True)
     pa, pb = a["prims"], b["prims"]
     assert set(pa) == set(pb)
     for key in pa:
@@ -251,7 +251,7 @@ def test_refit_is_the_fixed_run_at_the_chosen_budget(scene, tmp_path):
 
 def test_resume_inside_the_refit_gives_the_uninterrupted_result(scene, tmp_path):
     cfg = _cfg(threshold=100.0)
-    whole = torch.load(run_fit(scene, tmp_path / "whole", cfg) / "model.pt", weights_only=False)
+    whole = torch.load(run_fit(scene, tmp_path / "whole", cfg) / "model.pt", weights_only=True)
     calls = {"n": 0}
 
     def stop():  # the selection (stages 50 and 100, its control) ends before 70 checks
@@ -260,10 +260,10 @@ def test_resume_inside_the_refit_gives_the_uninterrupted_result(scene, tmp_path)
 
     part = tmp_path / "part"
     run_fit(scene, part, cfg, should_stop=stop)
-    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=True)
     assert state["auto_budget"]["refitting"] and 0 < state["trainer"]["it"] < 100
     run_fit(scene, part, cfg, resume=True)
-    resumed = torch.load(part / "model.pt", weights_only=False)
+    resumed = torch.load(part / "model.pt", weights_only=True)
     for key in whole["prims"]:
         torch.testing.assert_close(resumed["prims"][key], whole["prims"][key], rtol=1e-5, atol=1e-6)
 
@@ -297,15 +297,15 @@ def test_resume_inside_a_short_run_gives_the_uninterrupted_result(scene, tmp_pat
 
     part = tmp_path / "part"  # stopped 8 steps into the second short run (each takes 20)
     run_fit(scene, part, cfg, on_step=count, should_stop=lambda: steps["n"] >= 28)
-    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=True)
     assert state["auto_budget"]["current_short"] == 100 and 0 < state["trainer"]["it"] < 20
     run_fit(scene, part, cfg, resume=True)
     rep = json.loads((part / "fit.json").read_text())["auto_budget"]
     assert rep["chosen_budget"] == whole["chosen_budget"] == 50
     for a, b in zip(rep["stages"], whole["stages"]):
         assert a["holdout_psnr"] == pytest.approx(b["holdout_psnr"], abs=1e-3)
-    a = torch.load(part / "model.pt", weights_only=False)["prims"]
-    b = torch.load(whole_dir / "model.pt", weights_only=False)["prims"]
+    a = torch.load(part / "model.pt", weights_only=True)["prims"]
+    b = torch.load(whole_dir / "model.pt", weights_only=True)["prims"]
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6)
 
@@ -316,7 +316,7 @@ def test_resume_after_the_compaction_gives_the_uninterrupted_result(scene, tmp_p
     cfg = _cfg(threshold=100.0)
     cfg.auto_budget.compact_tolerance_db = 1.0
     whole_run = run_fit(scene, tmp_path / "whole", cfg)
-    whole = torch.load(whole_run / "model.pt", weights_only=False)
+    whole = torch.load(whole_run / "model.pt", weights_only=True)
     calls = {"n": 0}
 
     def stop():  # the selection takes 60 checks; the refit compacts at its iteration 84
@@ -325,10 +325,10 @@ def test_resume_after_the_compaction_gives_the_uninterrupted_result(scene, tmp_p
 
     part = tmp_path / "part"
     run_fit(scene, part, cfg, should_stop=stop)
-    state = torch.load(part / "checkpoints" / "last.pt", weights_only=False)
+    state = torch.load(part / "checkpoints" / "last.pt", weights_only=True)
     assert state["auto_budget"]["compact_report"] is not None and 84 <= state["trainer"]["it"] < 100
     run_fit(scene, part, cfg, resume=True)
-    resumed = torch.load(part / "model.pt", weights_only=False)
+    resumed = torch.load(part / "model.pt", weights_only=True)
     for key in whole["prims"]:
         torch.testing.assert_close(resumed["prims"][key], whole["prims"][key], rtol=1e-5, atol=1e-6)
     a = json.loads((part / "fit.json").read_text())["auto_budget"]["compact"]

@@ -115,6 +115,15 @@ def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.
     if img is None or img.size == 0:
         raise InputError(path, "image cannot be decoded (corrupt or not an image)",
                          "re-copy or replace the file, or remove it from the scene")
+    rgb = to_rgb(img, path, background)
+    return np.ascontiguousarray(np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8))
+
+
+def to_rgb(img: np.ndarray, path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Pixels as ``cv2.imdecode(..., IMREAD_UNCHANGED)`` returns them (grey, grey + alpha, BGR or
+    BGRA; 8-bit, 16-bit or float) as [H, W, 3] float32 RGB in [0, 1], an alpha channel composited
+    onto ``background`` (RGB in [0, 1]): how every image splatk measures is read (scene loading,
+    ``splatk compare``). ``path`` names the file in errors."""
     if img.dtype == np.uint16:
         img = img.astype(np.float32) / 65535.0
     elif img.dtype == np.uint8:
@@ -139,7 +148,7 @@ def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.
     if alpha is not None:
         bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
         rgb = rgb * alpha + bg * (1.0 - alpha)
-    return np.ascontiguousarray(np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8))
+    return np.ascontiguousarray(rgb, dtype=np.float32)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -71,9 +71,12 @@ def read_weights_file(path, fmt: str, what: str, remake: str) -> dict:
     """The dict a `splatk pretrain` weights file holds, checked to be of format ``fmt``; bad files
     raise an InputError naming the file (``what``: the kind of file, ``remake``: the command)."""
     from ..errors import InputError
+    from ..torch_files import load_torch_file
 
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+        obj = load_torch_file(path, f"re-run `{remake}`")
+    except InputError:
+        raise
     except Exception as e:
         raise InputError(path, f"cannot read {what} weights ({type(e).__name__})", f"re-run `{remake}`") from e
     if not isinstance(obj, dict) or obj.get("format") != fmt:

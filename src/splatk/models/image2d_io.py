@@ -16,6 +16,7 @@ is the image this file redraws (:func:`load_splats2d`, ``splatk image-decode``).
 from __future__ import annotations
 
 import math
+import os
 import struct
 from pathlib import Path
 
@@ -23,13 +24,20 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .image2d import GABOR_WAVES, KERNELS, SHARED_DTYPE, TURN_STEPS, Splats2D
+from .image2d import (GABOR_WAVES, KERNELS, MAX_SHAPES, SHARED_DTYPE, TURN_STEPS, Splats2D, bytes_per_primitive,
+                      network_bytes)
 from .io import atomic_write
 
 MAGIC = b"SPLK2D"
 VERSION = 1
 _HEADER = struct.Struct("<6sBBIHHBBH")
 HEADER_BYTES = _HEADER.size
+#: the largest image a file may declare: decoding draws [H, W, 3] float32 (64 Mpx: 768 MiB), so a
+#: 20-byte header cannot ask for the 51 GB of a 65535 x 65535 image
+MAX_PIXELS = 1 << 26
+#: the largest learned-kernel table (nodes per axis) a file may declare: decoding makes [N, G, G]
+#: floats, and 4 to 8 nodes are what fits use
+MAX_GRID = 32
 _F32, _F16, _U8 = np.dtype("<f4"), np.dtype("<f2"), np.dtype("u1")
 assert SHARED_DTYPE == torch.float16  # the shared block below is written as f16
 
@@ -42,8 +50,10 @@ def _decoder_tensors(model: Splats2D) -> list[torch.Tensor]:
 def encode_splats2d(model: Splats2D) -> bytes:
     """The file's bytes for ``model`` (a learned model's shared part must already be float16-exact:
     :meth:`Splats2D.round_shared`, which the fit calls)."""
-    if max(model.height, model.width) > 0xFFFF or model.grid > 0xFF or model.latent_dim > 0xFF:
-        raise ValueError("image size, grid or latent size too large for the splat file")
+    if (max(model.height, model.width) > 0xFFFF or model.height * model.width > MAX_PIXELS
+            or (model.kernel == "learned" and model.grid > MAX_GRID) or model.latent_dim > 0xFF):
+        raise ValueError(f"image size (at most {MAX_PIXELS} pixels), grid (at most {MAX_GRID}) or latent "
+                         "size too large for the splat file")
     palette = model.palette if model.kernel == "learned" and model.palette is not None else None
     header = _HEADER.pack(MAGIC, VERSION, KERNELS.index(model.kernel), model.n, model.height, model.width,
                           model.grid, model.latent_dim if model.kernel == "learned" else 0,
@@ -92,21 +102,55 @@ class _Reader:
         return torch.from_numpy(arr.astype(np.float32 if dtype.kind == "f" else np.int64))
 
 
+def payload_bytes(kernel: str, n: int, latent_dim: int, entries: int) -> int:
+    """Bytes after the header of a file holding ``n`` splats (``Splats2D.describe_bytes()["bytes"]``)."""
+    return bytes_per_primitive(kernel, latent_dim, entries) * n + network_bytes(kernel, latent_dim, entries)
+
+
+def _check_header(path: Path, kernel: str, n: int, height: int, width: int, grid: int, latent_dim: int,
+                  entries: int, file_bytes: int) -> None:
+    """Refuse a header whose sizes the file does not hold, or whose decoding would allocate more
+    than :data:`MAX_PIXELS` / :data:`MAX_GRID` allow, before anything is allocated: the header's
+    counts are only claims until the file's length backs them."""
+    corrupt = "splat file header is corrupt"
+    again = "re-run `splatk image` to write it again"
+    if height * width > MAX_PIXELS:
+        raise InputError(path, f"{corrupt} (a {width}x{height} image, over the {MAX_PIXELS} pixel limit)", again)
+    if kernel != "learned" and (latent_dim or entries):
+        raise InputError(path, f"{corrupt} (latents or a palette for the {kernel} kernel)", again)
+    if kernel == "learned" and (grid > MAX_GRID or entries > MAX_SHAPES):
+        raise InputError(path, f"{corrupt} (table grid {grid} or palette of {entries} past the limits "
+                               f"{MAX_GRID} and {MAX_SHAPES})", again)
+    expected = HEADER_BYTES + payload_bytes(kernel, n, latent_dim, entries)
+    if file_bytes < expected:
+        raise InputError(path, f"splat file is truncated or its header is corrupt ({file_bytes} bytes, "
+                               f"the header declares {expected})", again)
+    if file_bytes > expected:
+        raise InputError(path, f"splat file has {file_bytes - expected} bytes past its end (corrupt or not ours)")
+
+
 def load_splats2d(path: str | Path) -> Splats2D:
-    """The :class:`Splats2D` stored in ``path`` (float32 tensors on the CPU)."""
+    """The :class:`Splats2D` stored in ``path`` (float32 tensors on the CPU).
+
+    The header's sizes are checked against the file's length (and :data:`MAX_PIXELS`,
+    :data:`MAX_GRID`) before the payload is read or the model allocated.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "splat file not found", "pass the splats.bin that `splatk image` wrote")
-    data = path.read_bytes()
-    if len(data) < HEADER_BYTES or data[:len(MAGIC)] != MAGIC:
-        raise InputError(path, "not a splatk image splat file (bad header)",
-                         "pass the splats.bin that `splatk image` wrote")
-    _, version, kind, n, height, width, grid, latent_dim, entries = _HEADER.unpack_from(data)
-    if version != VERSION:
-        raise InputError(path, f"splat file version {version} is not supported (this splatk reads {VERSION})")
-    if kind >= len(KERNELS) or n < 1 or height < 1 or width < 1:
-        raise InputError(path, "splat file header is corrupt (kernel, count or size out of range)")
-    kernel = KERNELS[kind]
+    with open(path, "rb") as f:
+        head = f.read(HEADER_BYTES)
+        if len(head) < HEADER_BYTES or head[:len(MAGIC)] != MAGIC:
+            raise InputError(path, "not a splatk image splat file (bad header)",
+                             "pass the splats.bin that `splatk image` wrote")
+        _, version, kind, n, height, width, grid, latent_dim, entries = _HEADER.unpack(head)
+        if version != VERSION:
+            raise InputError(path, f"splat file version {version} is not supported (this splatk reads {VERSION})")
+        if kind >= len(KERNELS) or n < 1 or height < 1 or width < 1:
+            raise InputError(path, "splat file header is corrupt (kernel, count or size out of range)")
+        kernel = KERNELS[kind]
+        _check_header(path, kernel, n, height, width, grid, latent_dim, entries, os.fstat(f.fileno()).st_size)
+        data = head + f.read()
     model = Splats2D(kernel, n, height, width, grid=max(grid, 1), latent_dim=latent_dim, shapes=entries)
     r = _Reader(data, path)
     with torch.no_grad():
@@ -130,6 +174,6 @@ def load_splats2d(path: str | Path) -> Splats2D:
                     raise InputError(path, "splat file is corrupt (a palette index past the palette)")
                 model.palette = torch.nn.Parameter(palette)
                 model.shape_index = index
-    if r.pos != len(data):
-        raise InputError(path, f"splat file has {len(data) - r.pos} bytes past its end (corrupt or not ours)")
+    if r.pos != len(data):  # the sizes above and payload_bytes disagree: a bug, not a bad file
+        raise AssertionError(f"{path}: read {r.pos} of {len(data)} bytes")
     return model

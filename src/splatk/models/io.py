@@ -10,6 +10,7 @@ import torch
 
 from ..colors import make_color_model
 from ..kernels import make_kernel
+from ..torch_files import load_torch_file
 from .planar import PlanarModel
 from .volumetric import SplatModel
 
@@ -93,10 +94,18 @@ def load_model(path) -> tuple[SplatModel, dict]:
     if not path.is_file():
         raise InputError(path, "model file not found", "run `splatk fit` first")
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=False)
+        obj = load_torch_file(path, "re-run `splatk fit`")
+    except InputError:
+        raise
     except Exception as e:  # corrupt / truncated
         raise InputError(path, f"cannot read model ({type(e).__name__})", "re-run `splatk fit`") from e
     if not isinstance(obj, dict) or obj.get("format") != "splatk-model":
         raise InputError(path, "not a splatk model file")
-    model = build_model(obj["spec"], obj["prims"], obj.get("kernel_state"))
-    return model, {"spec": obj["spec"], **obj.get("meta", {})}
+    try:
+        model = build_model(obj["spec"], obj["prims"], obj.get("kernel_state"))
+        meta = {"spec": obj["spec"], **obj.get("meta", {})}
+    except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as e:  # hand-edited, other version
+        detail = (str(e).strip().splitlines() or [""])[0][:120]
+        raise InputError(path, f"model file is incomplete or inconsistent ({type(e).__name__}: {detail})",
+                         "re-run `splatk fit`") from None
+    return model, meta

@@ -135,6 +135,8 @@ def boost_short_run_lrs(cfg: "FitConfig", keep: frozenset | set = frozenset()) -
 
 def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
     """(scene path, settings, checkpoint) of the run in ``out``; InputError if any is unusable."""
+    from ..torch_files import load_torch_file
+
     out = Path(out)
     ckpt_path = out / "checkpoints" / "last.pt"
     if not ckpt_path.is_file():
@@ -151,9 +153,11 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
         raise InputError(cfg_path, f"run settings cannot be read ({type(e).__name__}: {e})",
                          "restore the file or run without --resume") from None
     try:
-        state = torch.load(ckpt_path, map_location=cfg.device, weights_only=False)
+        state = load_torch_file(ckpt_path, "start the run again without --resume", map_location=cfg.device)
         if not isinstance(state, dict) or "trainer" not in state:
             raise ValueError("not a splatk checkpoint")
+    except InputError:
+        raise
     except Exception as e:  # noqa: BLE001 - truncated zip, unpickling error, wrong file ...
         msg = str(e).strip().splitlines()[0][:120] if str(e).strip() else type(e).__name__
         raise InputError(ckpt_path, f"checkpoint is corrupt or truncated ({msg})",

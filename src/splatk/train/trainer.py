@@ -428,6 +428,17 @@ class Trainer:
         return msg
 
     # ---- state ---------------------------------------------------------------------------
+    @staticmethod
+    def _numpy_rng_state() -> tuple:
+        """``np.random.get_state()`` with its key array as an int64 tensor."""
+        name, keys, pos, has_gauss, cached_gaussian = np.random.get_state()
+        return name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(cached_gaussian)
+
+    @staticmethod
+    def _set_numpy_rng_state(state) -> None:
+        name, keys, pos, has_gauss, cached_gaussian = state
+        np.random.set_state((name, keys.cpu().numpy().astype(np.uint32), pos, has_gauss, cached_gaussian))
+
     def state_dict(self) -> dict:
         return {
             "it": self.it,
@@ -443,8 +454,10 @@ class Trainer:
             "mcmc_gen": self.mcmc_gen.get_state(),
             "view_queue": list(self._view_queue),
             "torch_rng": torch.get_rng_state(),
-            "numpy_rng": np.random.get_state(),
-            "python_rng": random.getstate(),
+            # plain values and tensors only, so that checkpoints load with weights_only=True
+            # (numpy's state holds an array: its 624 uint32 keys go in an int64 tensor)
+            "numpy_rng": self._numpy_rng_state(),
+            "python_rng": random.getstate(),  # (version, tuple of ints, float or None)
             # draws on a GPU without a generator of ours (torch's default one there)
             "cuda_rng": torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None,
             "config": asdict(self.cfg),
@@ -477,5 +490,6 @@ class Trainer:
         torch.set_rng_state(sd["torch_rng"].cpu())
         if sd.get("cuda_rng") is not None and self.device.type == "cuda":
             torch.cuda.set_rng_state(sd["cuda_rng"].cpu(), self.device)
-        np.random.set_state(sd["numpy_rng"])
-        random.setstate(sd["python_rng"])
+        self._set_numpy_rng_state(sd["numpy_rng"])
+        version, internal, gauss_next = sd["python_rng"]
+        random.setstate((version, tuple(internal), gauss_next))
