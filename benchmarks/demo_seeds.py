@@ -13,7 +13,7 @@ Without ``--variant``: the defaults only.
 The demo's outcome swings by several dB with the seed; this is how a change to the defaults is
 judged on it. Examples (benchmarks/README.md):
 
-    --variant default= --variant dbs-noise=noise_lr:5e4          # session 8: MCMC noise
+    --variant default= --variant dbs-noise=noise_lr:5e4          # MCMC noise: scaled vs 30k
     --variant default= --variant short-run-lrs=short_run_lrs:true # `fit --short-run-lrs`
     --variant keep=split_scales:keep,noise_lr:5e4 --variant shrink=split_scales:shrink,noise_lr:5e4
 """
