@@ -25,6 +25,8 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from splatk.outputs import write_marker
+from splatk.stages.fit import RUN_KIND
 from splatk_cli.main import cli
 
 ERROR_LINE = re.compile(r"^splatk: error: (?P<where>\S.*?): (?P<problem>.+) \((?P<fix>[^()]*(\([^()]*\)[^()]*)*)\)$")
@@ -79,6 +81,7 @@ def old_run(tmp_path) -> Path:
     """A previous run folder that a rejected command must leave exactly as it was."""
     run = tmp_path / "old_run"
     (run / "checkpoints").mkdir(parents=True)
+    write_marker(run, RUN_KIND)  # splatk wrote it, so --overwrite may replace it once the inputs check out
     (run / "config.yaml").write_text("scene: somewhere\n")
     (run / "model.pt").write_bytes(b"previous model" * 100)
     (run / "checkpoints" / "last.pt").write_bytes(b"previous checkpoint" * 100)

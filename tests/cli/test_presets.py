@@ -3,17 +3,28 @@ from pathlib import Path
 
 import pytest
 
-from splatk_cli.common import load_preset, parse_duration
-from splatk_cli.fit import build_fit_config
+from splatk.stages.fit_config import fit_config_from_options, parse_duration
+from splatk_cli.common import load_preset
 
 PRESETS = sorted((Path(__file__).resolve().parents[2] / "presets").glob("*.yaml"))
 
 
 @pytest.mark.parametrize("path", PRESETS, ids=[p.stem for p in PRESETS])
 def test_preset_loads(path):
-    data = load_preset(str(path))
-    assert isinstance(data, dict) and data
-    cfg = build_fit_config(data)
+    data, found = load_preset(str(path))
+    assert isinstance(data, dict) and data and found == path
+    if {"defaults", "methods", "grid", "stability"} & set(data):  # a `splatk bench` preset
+        from splatk.stages.bench import expand_grid, fit_config_for, load_bench_file
+
+        bench = load_bench_file(path)
+        methods = list(bench.get("methods") or []) + expand_grid(bench.get("grid") or {})
+        for kernel in (bench.get("stability") or {}).get("kernels", {}).values():
+            methods.append(kernel)
+        assert methods
+        for method in methods:
+            fit_config_for(method, bench.get("defaults"))
+        return
+    cfg, _ = fit_config_from_options({k: v for k, v in data.items() if k not in ("scale_schedules", "short_run_lrs")})
     assert cfg.kernel in ("gaussian", "beta", "student_t", "learned")
     if "budget" in data:
         assert cfg.train.budget == int(data["budget"])
@@ -32,9 +43,7 @@ def test_parse_duration(text, seconds):
 
 
 def test_parse_duration_rejects_garbage():
-    import click
-
-    with pytest.raises(click.BadParameter):
+    with pytest.raises(ValueError):
         parse_duration("ten minutes")
 
 

@@ -12,7 +12,7 @@ from splatk.stages.autobudget import (AutoBudget, AutoBudgetConfig, blending_wei
                                      render_psnr, split_holdout)
 from splatk.stages.fit import FitConfig, build_model, run_fit
 from splatk.train.trainer import TrainConfig, Trainer
-from splatk_cli.fit import build_fit_config
+from splatk.stages.fit_config import fit_config_from_options
 
 
 @pytest.fixture(scope="module")
@@ -140,6 +140,9 @@ def test_holdout_never_takes_all_views():
 
 
 def test_cli_budget_auto_parses():
+    def build_fit_config(options):
+        return fit_config_from_options(options)[0]
+
     cfg = build_fit_config({"budget": "auto"})
     assert cfg.auto_budget is not None and cfg.train.budget == TrainConfig().budget
     assert build_fit_config({"budget": "5000"}).auto_budget is None

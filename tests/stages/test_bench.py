@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from splatk.data.synthetic import make_demo_scene
+from splatk.errors import InputError
 from splatk.machine import CPU_FEATURES
 from splatk.stages import bench
 from splatk.stages.bench import (
     BenchConfig,
-    bytes_per_primitive,
     classify,
     fit_config_for,
     method_id,
@@ -23,6 +23,7 @@ from splatk.stages.bench import (
     run_stability,
 )
 from splatk.stages.bench_charts import pareto_front
+from splatk.stages.fit_config import bytes_per_primitive
 from splatk.stages.fit import run_fit
 
 BASE = {"iters": 40, "budget": 200, "init": "random", "sh_degree": 1, "backend": "torch", "threads": 1}
@@ -215,9 +216,10 @@ def test_planar_method_ids_are_distinct():
     assert method_id({"kernel": "learned", "k": 4, "budget_bytes": "1MB"}, planar) == "planar-learned-sh-B1M"
     cfg, _ = fit_config_for({"kernel": "learned", "k": 4}, {**planar, "iters": 30000})
     assert "k" not in cfg.kernel_options
-    with pytest.raises(ValueError, match="primitive"):
+    # bad settings are input errors, as `splatk fit` reports them
+    with pytest.raises(InputError, match="primitive"):
         fit_config_for({"primitive": "voxel"})
-    with pytest.raises(ValueError, match="no planar version"):  # before any training
+    with pytest.raises(InputError, match="no planar version"):  # before any training
         fit_config_for({"kernel": "beta"}, planar)
 
 

@@ -123,14 +123,16 @@ def parse_duration(text) -> float | None:
 def fit_config_from_options(options: dict, sources: dict | None = None,
                             base: FitConfig | None = None) -> tuple[FitConfig, dict]:
     """Flat options (command-line names: ``kernel``, ``k``, ``budget``, ``budget_bytes``,
-    ``time_budget``, ``iters``, any FitConfig or TrainConfig field) -> (FitConfig, notes).
+    ``time_budget``, ``iters``, any FitConfig or TrainConfig field) -> (checked FitConfig, notes).
 
     ``None`` values mean "not given". ``base`` (default: the defaults) is the config the
     options apply to. ``notes`` say how derived values (the budget from bytes) were found.
-    Unknown names and unreadable values are InputErrors; ranges are :func:`check_fit_config`'s.
+    Unknown names, unreadable values and values out of range (:func:`check_fit_config`) are
+    InputErrors.
     """
     sources = sources or {}
-    opts = {k.replace("-", "_"): v for k, v in options.items() if v is not None}
+    # None: not given; but a bench method's ``weights: null`` means "no pretrained networks"
+    opts = {k.replace("-", "_"): v for k, v in options.items() if v is not None or k == "weights"}
     cfg = FitConfig.from_dict(base.to_dict()) if base is not None else FitConfig()
     notes: dict = {}
     unknown = sorted(set(opts) - _FIT_FIELDS - _TRAIN_FIELDS - set(EXTRA_OPTIONS))
@@ -201,6 +203,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
             notes["budget"] = {"auto": True, "reference_budget": cfg.train.budget}
         else:
             cfg.train.budget = _read_count("budget", budget, budget, sources)
+    check_fit_config(cfg, sources)
     return cfg, notes
 
 
@@ -275,8 +278,8 @@ RULES = [
     ("train.noise_lr", "noise_lr", float_range(0.0)),
     ("train.split_scales", "split_scales", choice("keep", "shrink")),
     ("train.hold_growth", "hold_growth", BOOL),
-    ("train.lr_scale", "lr_scale", float_range(0.0, 1e4, lo_open=True)),
-    ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, 1e4, lo_open=True)),
+    ("train.lr_scale", "lr_scale", float_range(0.0, None, lo_open=True)),
+    ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, None, lo_open=True)),
     ("train.snapshot_every", "snapshot_every", int_range(1)),
     ("train.divergence_factor", "divergence_factor", float_range(0.0)),
 ]
@@ -334,9 +337,15 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
         raise option_error("background", cfg.background, "must be three numbers from 0 to 1",
                             "e.g. background: [1, 1, 1]", sources.get("background"))
     kernels = PLANAR_KERNELS if cfg.primitive == "planar" else KERNELS
+    if not isinstance(cfg.kernel, str):
+        raise option_error("kernel", cfg.kernel, "must be a kernel name", f"use one of {', '.join(sorted(KERNELS))}",
+                           sources.get("kernel"))
+    if cfg.primitive == "planar" and cfg.kernel in KERNELS and cfg.kernel not in PLANAR_KERNELS:
+        raise InputError(None, f"kernel {cfg.kernel!r} has no planar version",
+                         f"use --kernel {' or '.join(sorted(PLANAR_KERNELS))}, or --primitive volumetric")
     if cfg.kernel not in kernels:
         raise option_error("kernel", cfg.kernel, f"is not a {cfg.primitive} kernel",
-                            f"use one of {', '.join(sorted(kernels))}", sources.get("kernel"))
+                           f"use one of {', '.join(sorted(kernels))}", sources.get("kernel"))
     if not isinstance(cfg.kernel_options, dict):
         raise option_error("kernel_options", cfg.kernel_options, "must be a mapping", "e.g. kernel_options: {k: 4}",
                             sources.get("kernel_options"))
