@@ -90,10 +90,12 @@ def export_native(run: str | Path, out: str | Path) -> Path:
 
 def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_frames: int = 48) -> Path:
     """Test-view PNGs plus ``path.gif`` interpolated between train cameras."""
+    from .. import backends
     from ..data import load_scene
     from ..render_path import interpolate_cameras
 
     model, meta = load_model(Path(run) / "model.pt")
+    renderer = backends.get(backend, "cpu")
     scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0),
                        test_every=meta.get("test_every", 8),
                        background=tuple(meta["background"]) if meta.get("background") else None)
@@ -103,9 +105,9 @@ def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_
     frames = []
     with torch.no_grad():
         for cam in scene.test:
-            write_png(out / f"{Path(cam.name).stem}.png", model.render(cam, bg, backend=backend).image)
+            write_png(out / f"{Path(cam.name).stem}.png", model.render(cam, bg, backend=renderer).image)
         for cam in interpolate_cameras(scene.train, gif_frames):
-            img = model.render(cam, bg, backend=backend).image.clamp(0, 1)
+            img = model.render(cam, bg, backend=renderer).image.clamp(0, 1)
             frames.append((img.numpy() * 255 + 0.5).astype(np.uint8))
     if frames:
         from PIL import Image

@@ -364,7 +364,7 @@ def run_fit(
     else:
         prepare_run_dir(out, overwrite, resume=False)
         _write_config(out, scene_path, cfg, config_sources or {})
-        initial_psnr = render_psnr(trainer.model, scene.test, scene.background, cfg.train.backend)
+        initial_psnr = render_psnr(trainer.model, scene.test, scene.background, trainer.backend)
     spec = model_spec(trainer.model, cfg.kernel_options, _color_options(cfg))
     meta = {
         "scene": str(Path(scene_path).resolve()),
@@ -405,7 +405,7 @@ def run_fit(
         tr = _refit_trainer(scene, all_train, cfg, budget)
         # the final model descends from this one, so its PSNR is the run's initial PSNR
         current["trainer"] = tr
-        current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, cfg.train.backend)
+        current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, tr.backend)
         return tr
 
     def make_short_trainer(budget: int) -> Trainer:
