@@ -32,22 +32,10 @@ from __future__ import annotations
 import torch
 
 from .base import Backend
+from .registry import BACKENDS as _BACKENDS
+from .registry import register_backend
 from .types import (ALPHA_MAX, ALPHA_MIN, GAUSSIAN_SUPPORT_SIGMAS, PLANAR_PROFILE_KINDS, PROFILE_KINDS,
                     STUDENT_T_SUPPORT_SIGMAS, T_MIN, TILE_SIZE, PlanarProfile, Profile, RasterOutput)
-
-_BACKENDS: dict[str, type[Backend]] = {}
-
-
-def register_backend(name: str):
-    """Class decorator: register a :class:`Backend` subclass as ``name``."""
-
-    def wrap(cls: type[Backend]) -> type[Backend]:
-        cls.name = name
-        _BACKENDS[name] = cls
-        return cls
-
-    return wrap
-
 
 def _load_all() -> None:
     # Importing registers; the native module compiles lazily on first use, not at import.

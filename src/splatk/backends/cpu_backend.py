@@ -8,11 +8,12 @@ from __future__ import annotations
 import torch
 
 from ..functional.projection import Projected
-from . import cpu_native, register_backend
+from . import cpu_native
 from .fused_cpu import (bf16_mlp_available, eval_sh_fused, learned_decode_fused, learned_encode_fused,
                         learned_profile_fused, project_ellipsoids_fused, ssim_mean_fused)
 from .image_cpu import render_image_splats_cpu
 from .planar_cpu import rasterize_planar_cpu
+from .registry import register_backend
 from .torch_backend import TorchBackend
 from .types import PlanarProfile, Profile, RasterOutput
 

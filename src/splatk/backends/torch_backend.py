@@ -8,9 +8,9 @@ import torch
 from ..functional.projection import Projected, project_ellipsoids
 from ..functional.sh import eval_sh
 from ..metrics.ssim import ssim
-from . import register_backend
 from .base import Backend
 from .planar_torch import rasterize_planar
+from .registry import register_backend
 from .torch_ref import rasterize_torch
 from .types import PlanarProfile, Profile, RasterOutput
 
