@@ -29,7 +29,7 @@ class CpuBackend(TorchBackend):
         if device.type != "cpu":
             return f"it renders CPU tensors only, not {device.type}; use --backend torch or auto"
         if not cpu_native.available():
-            return f"the native extension could not be built: {cpu_native.unavailable_reason()}"
+            return f"the native extension could not be built: {cpu_native.unavailable_reason()}; use --backend torch"
         return None
 
     def project(self, means, quats, scales, viewmat, K, width, height, support_sigmas=3.0,

@@ -71,7 +71,6 @@ from torch import Tensor, nn
 
 from .. import backends
 from ..backends import Backend
-from ..errors import BackendUnavailable
 from ..functional.planar import bilinear
 
 KERNELS = ("gaussian", "gabor", "learned")
@@ -381,13 +380,11 @@ class Splats2D(nn.Module):
     def resolve_backend(self) -> Backend:
         """The backend named by ``self.backend`` for the splats' device (what :meth:`render`
         uses when given none); the exact learned mode, which only the torch path has, refuses
-        the native ``cpu`` backend by name."""
+        the native ``cpu`` backend by name. Raises ``BackendUnavailable`` (with the reason) for
+        a backend that cannot run on the splats' device."""
         if self.backend == "cpu" and self.kernel == "learned" and self.exact:
             raise ValueError("the exact learned mode has no cpu backend; use backend torch")
-        try:
-            return backends.get(self.backend, self.xy_raw.device)
-        except BackendUnavailable as e:
-            raise ValueError(f"image {e}; use backend torch") from None
+        return backends.get(self.backend, self.xy_raw.device)
 
     def uses_native(self, backend: Backend | None = None) -> bool:
         """Whether :meth:`render` with ``backend`` (default: :meth:`resolve_backend`) runs a native
