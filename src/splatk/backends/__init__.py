@@ -31,11 +31,13 @@ from __future__ import annotations
 
 import torch
 
+from ..errors import BackendUnavailable
 from .base import Backend
 from .registry import BACKENDS as _BACKENDS
 from .registry import register_backend
 from .types import (ALPHA_MAX, ALPHA_MIN, GAUSSIAN_SUPPORT_SIGMAS, PLANAR_PROFILE_KINDS, PROFILE_KINDS,
                     STUDENT_T_SUPPORT_SIGMAS, T_MIN, TILE_SIZE, PlanarProfile, Profile, RasterOutput)
+
 
 def _load_all() -> None:
     # Importing registers; the native module compiles lazily on first use, not at import.
@@ -69,8 +71,6 @@ def get(name: str, device: torch.device | str = "cpu") -> Backend:
         raise ValueError(f"unknown backend {name!r}; choose from {', '.join(backend_names())}, auto")
     reason = _BACKENDS[name].unavailable_reason(device)
     if reason is not None:
-        from ..errors import BackendUnavailable
-
         raise BackendUnavailable(f"backend {name!r} is not available here ({reason})")
     return _BACKENDS[name](device)
 
