@@ -169,4 +169,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from splatk._malloc import tune_malloc
+
+    tune_malloc()  # what the `splatk` command does: timings match the CLI's
     main()

@@ -38,6 +38,7 @@ def main() -> None:
 
     import torch
 
+    from splatk import backends
     from splatk.data import load_scene
     from splatk.kernels import make_kernel
     from splatk.models.io import load_model
@@ -51,6 +52,7 @@ def main() -> None:
     scene = load_scene(meta["scene"], downscale=ds)
     cams = scene.test[: args.views]
     bg = torch.tensor(scene.background)
+    cpu = backends.get("cpu")
 
     models = {"gaussian": model}
     prims = {k: v.detach().clone() for k, v in model.prims.items()}
@@ -68,12 +70,12 @@ def main() -> None:
     with torch.no_grad():
         for m in models.values():
             for c in cams[:2]:
-                m.render(c, bg, backend="cpu")
+                m.render(c, bg, backend=cpu)
         for _ in range(args.reps):
             for name, m in models.items():
                 t = time.perf_counter()
                 for c in cams:
-                    m.render(c, bg, backend="cpu")
+                    m.render(c, bg, backend=cpu)
                 passes[name].append((time.perf_counter() - t) / len(cams) * 1e3)
     rows = {name: {"ms": statistics.median(v)} for name, v in passes.items()}
     base = rows["gaussian"]["ms"]
@@ -92,4 +94,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from splatk._malloc import tune_malloc
+
+    tune_malloc()  # what the `splatk` command does: timings match the CLI's
     main()

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from splatk import backends
 from splatk.data import load_scene
 from splatk.models.io import load_model
 from splatk.stages.autobudget import blending_weights, render_psnr_keeping
@@ -27,15 +28,16 @@ def prune_curve(run: Path, fractions: list[float]) -> dict:
     scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0), test_every=meta.get("test_every", 8),
                        background=tuple(meta["background"]) if meta.get("background") else None)
     bg = torch.tensor(scene.background, dtype=torch.float32)
-    weights = blending_weights(model, scene.train)
+    renderer = backends.get("auto")
+    weights = blending_weights(model, scene.train, renderer)
     order = torch.argsort(weights, descending=True)
     share = torch.cumsum(weights[order], 0) / weights.sum().clamp_min(1e-12)
     n, rows = weights.numel(), []
     for frac in fractions:
         k = max(1, int(n * frac))
         rows.append({"keep_fraction": frac, "num_primitives": k, "weight_share": float(share[k - 1]),
-                     "train_psnr": render_psnr_keeping(model, order[:k], scene.train, bg),
-                     "test_psnr": render_psnr_keeping(model, order[:k], scene.test, bg)})
+                     "train_psnr": render_psnr_keeping(model, order[:k], scene.train, bg, renderer),
+                     "test_psnr": render_psnr_keeping(model, order[:k], scene.test, bg, renderer)})
     return {"run": str(run), "scene": meta["scene"], "num_primitives": n, "rows": rows}
 
 
@@ -68,4 +70,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from splatk._malloc import tune_malloc
+
+    tune_malloc()  # what the `splatk` command does: timings match the CLI's
     main()

@@ -273,4 +273,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from splatk._malloc import tune_malloc
+
+    tune_malloc()  # what the `splatk` command does: timings match the CLI's
     raise SystemExit(main())

@@ -5,8 +5,8 @@
 
 Trains the scene from random init with the default settings (Gaussian kernel, SH degree 3,
 MCMC) on the ``cpu`` backend, twice: with the fused native ops (SSIM, projection, SH; the
-default) and without them (``SPLATK_FUSED=0``: torch ops around the native rasteriser, as
-before they existed). After ``--warmup`` iterations (the SH degree is forced to 3 and every
+default) and without them (``unfused``: a cpu backend object whose projection, SH colour and
+SSIM are the ``torch`` backend's, around the native rasteriser). After ``--warmup`` iterations (the SH degree is forced to 3 and every
 primitive of the budget exists), it times ``--iters`` iterations, then profiles 20 more with
 torch.profiler and groups self CPU time by op. Each variant runs in its own subprocess.
 Writes benchmarks/results/train_step.json and prints a table. The target of issue #3: one
@@ -37,6 +37,24 @@ GROUPS = [
 ]
 
 
+def variant_backend(variant: str):
+    """The backend object a variant trains with: ``fused`` is ``--backend cpu``; ``unfused`` the
+    same native rasteriser with the torch backend's projection, SH colour and SSIM."""
+    from splatk import backends
+    from splatk.backends.torch_backend import TorchBackend
+
+    cpu = backends.get("cpu", "cpu")
+    if variant == "fused":
+        return cpu
+
+    class NativeRasterTorchOps(type(cpu)):
+        project = TorchBackend.project
+        sh_colors = TorchBackend.sh_colors
+        ssim = TorchBackend.ssim
+
+    return NativeRasterTorchOps("cpu")
+
+
 def run_variant(args) -> dict:
     import torch
     from torch.profiler import ProfilerActivity, profile
@@ -49,7 +67,7 @@ def run_variant(args) -> dict:
     scene = load_scene(args.scene)
     cfg = FitConfig(train=TrainConfig(init="random", budget=args.budget, iters=30_000, backend="cpu"))
     model = build_model(scene, cfg)
-    trainer = Trainer(scene, model, cfg.train)
+    trainer = Trainer(scene, model, cfg.train, backend=variant_backend(args.variant))
     trainer.it = 3000  # SH degree 3 from the start, as in the second half of a run
     for _ in range(args.warmup):
         trainer.train_step()
@@ -94,12 +112,11 @@ def main() -> None:
         sys.exit(f"{args.scene}: scene folder not found (this benchmark reads ../shared/data/lego)")
     rows = {}
     for variant in ("fused", "unfused"):
-        env = dict(os.environ, SPLATK_FUSED="1" if variant == "fused" else "0")
         cmd = [sys.executable, __file__, "--variant", variant, "--scene", args.scene,
                "--budget", str(args.budget), "--warmup", str(args.warmup), "--iters", str(args.iters),
                "--threads", str(args.threads)]
         load0 = os.getloadavg()[0]
-        out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True)
         rows[variant] = {**json.loads(out.stdout.strip().splitlines()[-1]),
                          "loadavg_before": round(load0, 2)}
     result = {"scene": args.scene, "budget": args.budget, "threads": args.threads,
@@ -116,4 +133,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from splatk._malloc import tune_malloc
+
+    tune_malloc()  # what the `splatk` command does: timings match the CLI's
     main()

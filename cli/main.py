@@ -74,6 +74,11 @@ _register()
 
 
 def main() -> None:
+    """The `splatk` entry point. Tunes glibc's malloc for training first (``splatk._malloc``):
+    a process-wide setting, so the command makes it, not ``import splatk``."""
+    from splatk._malloc import tune_malloc
+
+    tune_malloc()
     cli(prog_name="splatk")
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 
+from splatk import backends
 from splatk.data.types import Camera, Scene
 from splatk.models.volumetric import SplatModel
 
@@ -57,7 +58,7 @@ def synthetic_scene(num_views: int = 12, size: int = 48, seed: int = 0, num_poin
     cams = orbit_cameras(num_views, size)
     with torch.no_grad():
         for cam in cams:
-            img = gt.render(cam, torch.tensor(bg), sh_degree=1, backend="torch").image
+            img = gt.render(cam, torch.tensor(bg), sh_degree=1, backend=backends.get("torch")).image
             cam.image = (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
     g = torch.Generator().manual_seed(seed + 7)
     pts = gt.prims["means"].detach() + 0.05 * torch.randn(num_points, 3, generator=g)

@@ -17,6 +17,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scenes import orbit_cameras, random_model, synthetic_scene  # noqa: E402
 
+from splatk import backends
 from splatk.data.synthetic import make_demo_scene
 from splatk.device import resolve_device
 from splatk.errors import InputError
@@ -53,7 +54,7 @@ def _render_and_grads(model, cam, dev: str):
     """Image and every parameter's gradient of a fixed weighted sum of it, on ``dev``."""
     m = copy.deepcopy(model).to(dev)
     bg = torch.tensor([1.0, 1.0, 1.0], device=dev)
-    img = m.render(cam, bg, sh_degree=1, backend="torch").image
+    img = m.render(cam, bg, sh_degree=1, backend=backends.get("torch")).image
     w = torch.linspace(-1.0, 1.0, img.numel(), device=dev).reshape(img.shape)
     (img * w).sum().backward()
     grads = {n: p.grad.detach().cpu() for n, p in m.named_parameters() if p.grad is not None}

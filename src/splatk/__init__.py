@@ -2,9 +2,7 @@
 
 The engine (this package) knows nothing of the command line; `splatk_cli` is the thin layer
 that parses flags and prints. Layers: data -> models -> functional/kernels/colors -> backends.
+Importing it changes no process-wide state: the malloc tuning training wants
+(:func:`splatk._malloc.tune_malloc`) is the `splatk` command's to make, or a script's.
 """
-from ._malloc import tune_malloc
-
-tune_malloc()
-
 __version__ = "0.1.0"

@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from splatk import backends
 from splatk.backends import cpu_native
 from splatk.functional.projection import project_ellipsoids
 from splatk.functional.sh import eval_sh
@@ -158,7 +159,7 @@ def test_cpu_render_matches_torch_render(kernel):
     images = []
     for backend in ("cpu", "torch"):
         m.zero_grad()
-        out = m.render(cam, bg, sh_degree=3, backend=backend)
+        out = m.render(cam, bg, sh_degree=3, backend=backends.get(backend))
         (out.image * torch.linspace(0, 1, out.image.numel()).view_as(out.image)).sum().backward()
         images.append(out.image.detach())
         grads.append({k: p.grad.clone() for k, p in m.prims.items()})
@@ -167,10 +168,10 @@ def test_cpu_render_matches_torch_render(kernel):
         assert _rel(grads[0][k], grads[1][k]) < 1e-3, k
     with torch.no_grad():  # eval renders (the learned kernel's native encode / decode)
         if kernel == "learned":  # Phi_proj in bf16 where the CPU has it: native vs autocast rounding
-            a, b = (m.render(cam, bg, sh_degree=3, backend=be).image for be in ("cpu", "torch"))
+            a, b = (m.render(cam, bg, sh_degree=3, backend=backends.get(be)).image for be in ("cpu", "torch"))
             assert _rel(a, b) < 1e-3
             m.kernel.proj_precision = "fp32"
-        a, b = (m.render(cam, bg, sh_degree=3, backend=be).image for be in ("cpu", "torch"))
+        a, b = (m.render(cam, bg, sh_degree=3, backend=backends.get(be)).image for be in ("cpu", "torch"))
     assert _rel(a, b) < 1e-5
 
 
@@ -191,7 +192,7 @@ def test_learned_encode_and_decode_match_torch(inputs):
         z = torch.randn(m, 5, generator=g) if "z" in inputs else None
         with torch.no_grad():
             x_ref = kern.encode(z, view)
-            fused = ViewContext(view.means_cam, view.scales, view.rotmats_cam, fused=True)
+            fused = ViewContext(view.means_cam, view.scales, view.rotmats_cam, backends.get("cpu"))
             x = kern.encode(z, fused)
             assert x.shape == x_ref.shape and _rel(x, x_ref) < 1e-6
             z2d = kern.project(z, view)
@@ -224,7 +225,7 @@ def test_learned_bf16_profile_matches_autocast(inputs, arch):
     mu = torch.randn(m, 3, generator=g) * 2 + torch.tensor([0, 0, 5.0])
     view = ViewContext(mu, torch.rand(m, 3, generator=g) * 0.3 + 1e-4,
                        torch.linalg.qr(torch.randn(m, 3, 3, generator=g))[0])
-    fused = ViewContext(view.means_cam, view.scales, view.rotmats_cam, fused=True)
+    fused = ViewContext(view.means_cam, view.scales, view.rotmats_cam, backends.get("cpu"))
     for k in (2, 8):
         kern = make_kernel("learned", k=k, proj_inputs=inputs, weights="none", proj_precision="bf16", **arch)
         prims = {"z3d": torch.randn(m, kern.latent_dim, generator=g)} if "z" in inputs else {}
@@ -250,7 +251,7 @@ def test_learned_bf16_profile_handles_empty_and_single_rows():
         cam = (torch.rand(m, 3) + torch.tensor([0, 0, 3.0]), torch.rand(m, 3) * 0.1 + 0.01,
                torch.eye(3).expand(m, 3, 3).contiguous())
         with torch.no_grad():
-            d = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, fused=True)).params
+            d = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, backends.get("cpu"))).params
             ref = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam)).params
         assert d.shape == (m, 4) and (m == 0 or (d - ref).abs().max() < 1e-2)
 
@@ -264,6 +265,6 @@ def test_learned_profile_wider_than_native_buffers_falls_back_to_torch():
     cam = (torch.rand(m, 3) + torch.tensor([0, 0, 3.0]), torch.rand(m, 3) * 0.1 + 0.01,
            torch.eye(3).expand(m, 3, 3).contiguous())
     with torch.no_grad():
-        a = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, fused=True)).params
+        a = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam, backends.get("cpu"))).params
         b = kern.profile({"z3d": torch.zeros(m, kern.latent_dim)}, ViewContext(*cam)).params
     assert (a - b).abs().max() < 1e-6  # torch Phi_proj either way (the decode may be native)

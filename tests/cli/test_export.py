@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from PIL import Image
 from plyfile import PlyData
 
+from splatk import backends
 from splatk.models.io import load_model
 from splatk_cli.main import cli
 
@@ -94,7 +95,7 @@ def test_renders_and_gif(run, tmp_path):
         img = cv2.imread(str(out / f"{cam.name.split('/')[-1].split('.')[0]}.png"), cv2.IMREAD_UNCHANGED)
         assert img is not None and img.shape == (cam.height, cam.width, 3) and img.dtype == np.uint8
         with torch.no_grad():
-            ref = model.render(cam, bg, backend="torch").image.clamp(0, 1).numpy()
+            ref = model.render(cam, bg, backend=backends.get("torch")).image.clamp(0, 1).numpy()
         diff = np.abs(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255 - ref)
         assert diff.max() <= 1 / 255 + 1e-6  # 8-bit rounding only
     with Image.open(out / "path.gif") as gif:

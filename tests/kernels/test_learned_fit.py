@@ -1,6 +1,7 @@
 """A short fit with the learned kernel improves held-out views (Trainer, torch backend)."""
 import torch
 
+from splatk import backends
 from splatk.metrics import psnr
 from splatk.models.volumetric import SplatModel
 from splatk.train.trainer import TrainConfig, Trainer
@@ -13,7 +14,7 @@ def test_short_learned_fit_raises_test_psnr():
 
     def test_psnr(model):
         with torch.no_grad():
-            vals = [float(psnr(model.render(c, bg, sh_degree=1, backend="torch").image.clamp(0, 1),
+            vals = [float(psnr(model.render(c, bg, sh_degree=1, backend=backends.get("torch")).image.clamp(0, 1),
                                c.image_float())) for c in scene.test]
         return sum(vals) / len(vals)
 

@@ -4,6 +4,7 @@ import math
 import pytest
 import torch
 
+from splatk import backends
 from splatk.errors import InputError
 from splatk.functional.projection import project_ellipsoids
 from splatk.kernels import ViewContext, make_kernel
@@ -103,7 +104,7 @@ def test_proj_inputs_ablation_without_latent():
 def test_gradients_reach_z3d_and_both_networks():
     model = random_model(40, 3, kernel="learned")
     cam = orbit_cameras(4)[1]
-    out = model.render(cam, torch.ones(3), sh_degree=1, backend="torch")
+    out = model.render(cam, torch.ones(3), sh_degree=1, backend=backends.get("torch"))
     (out.image * torch.rand_like(out.image)).sum().backward()
     assert model.prims["z3d"].grad is not None and model.prims["z3d"].grad[out.visible].abs().sum() > 0
     for name, p in model.kernel.named_parameters():
@@ -158,8 +159,8 @@ def test_save_load_round_trip(tmp_path):
     assert torch.equal(loaded.prims["z3d"], model.prims["z3d"])
     cam = orbit_cameras(3)[0]
     with torch.no_grad():
-        a = model.render(cam, torch.ones(3), sh_degree=1, backend="torch").image
-        b = loaded.render(cam, torch.ones(3), sh_degree=1, backend="torch").image
+        a = model.render(cam, torch.ones(3), sh_degree=1, backend=backends.get("torch")).image
+        b = loaded.render(cam, torch.ones(3), sh_degree=1, backend=backends.get("torch")).image
     assert torch.equal(a, b)
 
 
@@ -171,7 +172,7 @@ def test_weights_file_missing(tmp_path):
     loaded, _ = load_model(path)
     cam = orbit_cameras(2)[0]
     with torch.no_grad():
-        loaded.render(cam, torch.ones(3), sh_degree=1, backend="torch")
+        loaded.render(cam, torch.ones(3), sh_degree=1, backend=backends.get("torch"))
     # ... but a new kernel pointed at a missing file says so when first used
     kern = LearnedKernel(weights=tmp_path / "gone.pt")
     view = ViewContext(torch.tensor([[0.0, 0.0, 2.0]]), torch.full((1, 3), 0.1), torch.eye(3)[None])

@@ -7,7 +7,8 @@ import math
 import torch
 
 from splatk.backends.planar_torch import rasterize_planar
-from splatk.kernels.learned_planar import LearnedPlanarKernel, gaussian_surfel
+from splatk.functional.planar import gaussian_surfel
+from splatk.kernels.learned_planar import LearnedPlanarKernel
 
 
 def _kernel_and_latents(grid=8, m=6):

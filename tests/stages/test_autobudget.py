@@ -6,6 +6,7 @@ import json
 import pytest
 import torch
 
+from splatk import backends
 from splatk.data import load_scene
 from splatk.data.synthetic import make_demo_scene
 from splatk.stages.autobudget import (AutoBudget, AutoBudgetConfig, blending_weights, compaction_cut,
@@ -64,7 +65,7 @@ def test_prune_drops_invisible_and_transparent_primitives(scene):
     rows["means"][:3] = 1e4  # far outside every view
     rows["opacity_logits"][3:] = -20.0  # transparent
     tr.opt.append_rows(rows)
-    w = blending_weights(tr.model, sc.train, backend="torch")
+    w = blending_weights(tr.model, sc.train, backend=backends.get("torch"))
     assert (w[n:n + 3] == 0).all() and (w[:n] > 0).any()
     ab = AutoBudget(AutoBudgetConfig(), 60)
     rep = ab.prune(tr, sc.train[:1])
@@ -91,13 +92,13 @@ def test_compaction_keeps_the_fewest_top_contributors_within_the_tolerance(scene
     sc, tr = _trained(scene)
     model, bg = tr.model, torch.tensor(sc.background, dtype=torch.float32)
     n, steps, min_keep = model.num_primitives, 10, 0.2
-    keep, rep = compaction_cut(model, sc.train, bg, tolerance, min_keep, "torch", steps=steps)
+    keep, rep = compaction_cut(model, sc.train, bg, tolerance, min_keep, backends.get("torch"), steps=steps)
     assert model.num_primitives == n  # the model itself is untouched
-    base = render_psnr(model, sc.train, bg, "torch")
+    base = render_psnr(model, sc.train, bg, backends.get("torch"))
     assert rep["train_psnr_before"] == pytest.approx(base)
     k = int(keep.sum())
     assert k == rep["num_primitives_after"] and k < n  # random init leaves dead weight
-    w = blending_weights(model, sc.train, "torch")
+    w = blending_weights(model, sc.train, backends.get("torch"))
     assert w[keep].min() >= w[~keep].max()  # the kept ones are the top contributors
 
     def psnr_of(mask):
@@ -105,7 +106,7 @@ def test_compaction_keeps_the_fewest_top_contributors_within_the_tolerance(scene
         for key, v in model.prims.items():
             v.data = full[key][mask]
         try:
-            return render_psnr(model, sc.train, bg, "torch")
+            return render_psnr(model, sc.train, bg, backends.get("torch"))
         finally:
             for key, v in model.prims.items():
                 v.data = full[key]

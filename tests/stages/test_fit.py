@@ -10,6 +10,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scenes import synthetic_scene  # noqa: E402
 
+from splatk import backends
 from splatk.models.volumetric import SplatModel
 from splatk.train.trainer import TrainConfig, Trainer
 
@@ -19,7 +20,7 @@ def mean_test_psnr(model, scene, backend="torch") -> float:
     vals = []
     with torch.no_grad():
         for cam in scene.test:
-            img = model.render(cam, bg, backend=backend).image.clamp(0, 1)
+            img = model.render(cam, bg, backend=backends.get(backend)).image.clamp(0, 1)
             mse = ((img - cam.image_float()) ** 2).mean()
             vals.append(float(-10 * torch.log10(mse)))
     return sum(vals) / len(vals)

@@ -10,6 +10,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scenes import synthetic_scene  # noqa: E402
 
+from splatk import backends
 from splatk.errors import InputError
 from splatk.models.io import load_model, model_spec, save_model
 from splatk.models.planar import PlanarModel
@@ -22,7 +23,7 @@ def mean_test_psnr(model, scene, backend) -> float:
     vals = []
     with torch.no_grad():
         for cam in scene.test:
-            img = model.render(cam, bg, backend=backend).image.clamp(0, 1)
+            img = model.render(cam, bg, backend=backends.get(backend)).image.clamp(0, 1)
             vals.append(float(-10 * torch.log10(((img - cam.image_float()) ** 2).mean())))
     return sum(vals) / len(vals)
 
@@ -53,8 +54,8 @@ def test_short_planar_fit_raises_test_psnr_and_round_trips(kernel, tmp_path):
     assert isinstance(loaded, PlanarModel) and meta["spec"]["primitive"] == "planar"
     bg = torch.tensor(scene.background)
     with torch.no_grad():
-        a = tr.model.render(scene.test[0], bg, backend="auto").image
-        b = loaded.render(scene.test[0], bg, backend="auto").image
+        a = tr.model.render(scene.test[0], bg, backend=backends.get("auto")).image
+        b = loaded.render(scene.test[0], bg, backend=backends.get("auto")).image
     assert torch.equal(a, b)
 
 
@@ -65,8 +66,8 @@ def test_planar_render_backends_agree():
                                     color_options={"sh_degree": 1})
     bg = torch.tensor(scene.background)
     with torch.no_grad():
-        ref = model.render(scene.train[0], bg, backend="torch").image
-        nat = model.render(scene.train[0], bg, backend="cpu").image
+        ref = model.render(scene.train[0], bg, backend=backends.get("torch")).image
+        nat = model.render(scene.train[0], bg, backend=backends.get("cpu")).image
     torch.testing.assert_close(nat, ref, atol=2e-5, rtol=0)
 
 

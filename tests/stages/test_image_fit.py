@@ -10,7 +10,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from splatk.backends.planar_torch import bilinear
+from splatk.functional.planar import bilinear
 from splatk.errors import InputError
 from splatk.models.image2d import (KERNELS, LATENT_DIM, SHARED_BYTES_PER_FLOAT, SHARED_DTYPE, PlanarDecoder,
                                    Splats2D, bytes_per_primitive, decoder_floats, floats_per_primitive, kmeans,

@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from splatk import backends
 from splatk.train.mcmc import MCMCConfig, MCMCStrategy, split_scale_factor
 from splatk.train.optim import PrimitiveAdam
 
@@ -58,8 +59,8 @@ def test_shrunk_split_draws_what_the_source_drew():
         one = random_model(1, seed=3)
         for k, v in before.items():
             one.prims[k].data.copy_(v)
-        ref = one.render(cam, bg, sh_degree=1, backend="torch").image
-        img = model.render(cam, bg, sh_degree=1, backend="torch").image
+        ref = one.render(cam, bg, sh_degree=1, backend=backends.get("torch")).image
+        img = model.render(cam, bg, sh_degree=1, backend=backends.get("torch")).image
         errors[rule] = float((img - ref).abs().mean())
     assert errors["shrink"] < 0.5 * errors["keep"], errors
 

@@ -1,7 +1,13 @@
-"""Rasteriser backends: one fixed signature, a dict registry.
+"""Backends: the ops a render and a training step need, one object per implementation.
 
-Every backend implements :func:`rasterize` with the same semantics (the pure-PyTorch
-``torch`` backend is the specification; see ``docs/design.md``):
+``get(name, device)`` returns a :class:`Backend` (``project``, ``sh_colors``, ``rasterize``,
+``rasterize_planar``, ``ssim`` and optional native ops); the trainer and every stage resolve it
+once and hand the object down, so models, kernels, colour models and losses never see a
+backend's name. Backends register by name in a dict (``@register_backend("cpu")`` on the
+class); ``auto`` is the available one with the highest ``priority`` for the device. The
+pure-PyTorch ``torch`` backend is the specification (see ``docs/design.md``).
+
+Every backend's :meth:`Backend.rasterize` has the same semantics:
 
 * For pixel centre ``p`` (pixel (i, j) -> (i + 0.5, j + 0.5)) and primitive ``g``:
   ``d = p - means2d[g]``, ``r2 = a*dx*dx + 2*b*dx*dy + c*dy*dy`` with ``(a, b, c) = conics[g]``.
@@ -23,68 +29,19 @@ Profiles (:class:`Profile`), all functions of the normalised radius ``r = sqrt(r
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
-
 import torch
 
-GAUSSIAN_SUPPORT_SIGMAS = 3.0
-STUDENT_T_SUPPORT_SIGMAS = 3.0
-ALPHA_MAX = 0.999
-ALPHA_MIN = 1.0 / 255.0
-T_MIN = 1e-4
-TILE_SIZE = 16
-
-PROFILE_KINDS = ("gaussian", "beta", "student_t", "table")
-
-
-class Profile(NamedTuple):
-    """Radial opacity profile handed to the rasteriser.
-
-    Attributes:
-        kind: one of ``PROFILE_KINDS``.
-        params: ``None`` for gaussian; ``[N, 1]`` beta / nu; ``[N, k]`` table samples (k >= 2).
-    """
-
-    kind: str
-    params: torch.Tensor | None = None
-
-
-class RasterOutput(NamedTuple):
-    """Rendered image.
-
-    Attributes:
-        colors: [H, W, C] composited colours (background included).
-        alphas: [H, W, 1] accumulated opacity ``1 - T_final``.
-    """
-
-    colors: torch.Tensor
-    alphas: torch.Tensor
-
-
-RasterizeFn = Callable[..., RasterOutput]
-_BACKENDS: dict[str, RasterizeFn] = {}
-_AVAILABLE: dict[str, Callable[[], bool]] = {}
-
-
-def register_backend(name: str, available: Callable[[], bool] = lambda: True):
-    """Decorator: register ``fn`` as backend ``name``; ``available()`` says if it can run here."""
-
-    def wrap(fn: RasterizeFn) -> RasterizeFn:
-        _BACKENDS[name] = fn
-        _AVAILABLE[name] = available
-        return fn
-
-    return wrap
+from ..errors import BackendUnavailable
+from .base import Backend
+from .registry import BACKENDS as _BACKENDS
+from .registry import register_backend
+from .types import (ALPHA_MAX, ALPHA_MIN, GAUSSIAN_SUPPORT_SIGMAS, PLANAR_PROFILE_KINDS, PROFILE_KINDS,
+                    STUDENT_T_SUPPORT_SIGMAS, T_MIN, TILE_SIZE, PlanarProfile, Profile, RasterOutput)
 
 
 def _load_all() -> None:
     # Importing registers; the native module compiles lazily on first use, not at import.
-    from . import torch_ref  # noqa: F401
-
-    try:
-        from . import cpu_native  # noqa: F401
-    except ImportError:
-        pass
+    from . import cpu_backend, torch_backend  # noqa: F401
 
 
 def backend_names() -> list[str]:
@@ -92,41 +49,42 @@ def backend_names() -> list[str]:
     return sorted(_BACKENDS)
 
 
-def is_available(name: str) -> bool:
+def is_available(name: str, device: torch.device | str = "cpu") -> bool:
+    """Whether backend ``name`` runs on ``device`` here (the native one builds on this call)."""
     _load_all()
-    return name in _AVAILABLE and _AVAILABLE[name]()
+    return name in _BACKENDS and _BACKENDS[name].unavailable_reason(torch.device(device)) is None
 
 
-def resolve_backend(name: str, device: torch.device | str = "cpu") -> str:
-    """Map ``auto`` to the fastest backend that runs on ``device``; check explicit names."""
+def get(name: str, device: torch.device | str = "cpu") -> Backend:
+    """The backend ``name`` (or ``auto``: the fastest that runs on ``device``) for ``device``.
+
+    Raises:
+        ValueError: an unknown name.
+        splatk.errors.BackendUnavailable: the backend cannot run on ``device`` here.
+    """
     _load_all()
     device = torch.device(device)
     if name == "auto":
-        if device.type == "cpu" and "cpu" in _BACKENDS and _AVAILABLE["cpu"]():
-            return "cpu"
-        return "torch"
+        runnable = [c for c in _BACKENDS.values() if c.unavailable_reason(device) is None]
+        return max(runnable, key=lambda c: c.priority)(device)
     if name not in _BACKENDS:
         raise ValueError(f"unknown backend {name!r}; choose from {', '.join(backend_names())}, auto")
-    if not _AVAILABLE[name]():
-        from ..errors import BackendUnavailable
+    reason = _BACKENDS[name].unavailable_reason(device)
+    if reason is not None:
+        raise BackendUnavailable(f"backend {name!r} is not available here ({reason})")
+    return _BACKENDS[name](device)
 
-        raise BackendUnavailable(f"backend {name!r} is not available here")
-    return name
+
+def resolve_backend(name: str, device: torch.device | str = "cpu") -> str:
+    """The name ``get(name, device)`` resolves to (what rendered, for reports: never ``auto``)."""
+    return get(name, device).name
 
 
-def rasterize(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    depths: torch.Tensor,
-    profile: Profile,
-    width: int,
-    height: int,
-    background: torch.Tensor | None = None,
-    backend: str = "auto",
-) -> RasterOutput:
-    """Composite 2D splats into an image. Differentiable in every float input.
+def rasterize(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
+              colors: torch.Tensor, depths: torch.Tensor, profile: Profile, width: int, height: int,
+              background: torch.Tensor | None = None, backend: str = "auto") -> RasterOutput:
+    """Composite 2D splats into an image with backend ``backend`` (a name; see
+    :meth:`Backend.rasterize`). Differentiable in every float input.
 
     Args:
         means2d: [N, 2] pixel-space centres.
@@ -139,11 +97,17 @@ def rasterize(
         background: [C] colour behind everything (zeros if None).
         backend: registered name or ``auto``.
     """
-    name = resolve_backend(backend, means2d.device)
     if background is None:
         background = torch.zeros(colors.shape[1], device=colors.device, dtype=colors.dtype)
     if profile.kind not in PROFILE_KINDS:
         raise ValueError(f"unknown profile kind {profile.kind!r}")
-    return _BACKENDS[name](
-        means2d, conics, opacities, colors, depths, profile, int(width), int(height), background
-    )
+    return get(backend, means2d.device).rasterize(means2d, conics, opacities, colors, depths, profile,
+                                                  int(width), int(height), background)
+
+
+__all__ = [
+    "ALPHA_MAX", "ALPHA_MIN", "GAUSSIAN_SUPPORT_SIGMAS", "PLANAR_PROFILE_KINDS", "PROFILE_KINDS",
+    "STUDENT_T_SUPPORT_SIGMAS", "T_MIN", "TILE_SIZE", "Backend", "PlanarProfile", "Profile",
+    "RasterOutput", "backend_names", "get", "is_available", "register_backend", "resolve_backend",
+    "rasterize",
+]

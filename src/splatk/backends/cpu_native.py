@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 from torch.autograd.function import once_differentiable
 
-from . import PROFILE_KINDS, Profile, RasterOutput, register_backend
+from .types import PROFILE_KINDS, Profile, RasterOutput
 
 _CSRC = Path(__file__).with_name("csrc")
 _SOURCES = ("rasterize_cpu.cpp", "raster_kernels.cpp", "raster_kernels_f64.cpp", "fused_ops.cpp",
@@ -216,7 +216,6 @@ class _RasterizeCPU(torch.autograd.Function):
         return v_means, v_conics, v_opac, v_colors, v_params, v_bg, None, None, None, None
 
 
-@register_backend("cpu", available=available)
 def rasterize_cpu(
     means2d: torch.Tensor,
     conics: torch.Tensor,

@@ -7,26 +7,15 @@ time in torch ops: the separable SSIM convolutions (~75 ms forward+backward), th
 versions (``metrics/ssim.py``, ``functional/projection.py``, ``functional/sh.py``) stay the
 specification; ``tests/backends/test_fused_ops.py`` checks these against them.
 
-:func:`use_fused` decides: fused ops run where the ``cpu`` rasteriser does (CPU tensors, the
-extension built), so ``--backend cpu`` / ``auto`` speeds up the whole iteration and
-``--backend torch`` stays pure torch.
+:class:`splatk.backends.cpu_backend.CpuBackend` is where they are used: ``--backend cpu`` / ``auto``
+speeds up the whole iteration and ``--backend torch`` stays pure torch.
 """
 from __future__ import annotations
-
-import os
 
 import torch
 from torch.autograd.function import once_differentiable
 
 from . import cpu_native
-
-
-def use_fused(backend_name: str, device: torch.device | str) -> bool:
-    """Whether the fused ops apply: the resolved backend is ``cpu``, tensors are on the CPU, and
-    ``SPLATK_FUSED`` is not ``0`` (the switch ``benchmarks/train_step.py`` compares with)."""
-    if os.environ.get("SPLATK_FUSED", "1") == "0":
-        return False
-    return backend_name == "cpu" and torch.device(device).type == "cpu" and cpu_native.available()
 
 
 def _ext():

@@ -1,4 +1,5 @@
-"""Planar (surfel) rasterisation: one entry point, two backends.
+"""Planar (surfel) rasterisation by backend name: :meth:`Backend.rasterize_planar` of
+``get(backend, device)``.
 
 ``torch`` is the dense pure-torch reference (:mod:`splatk.backends.planar_torch`, the
 specification); ``cpu`` the native tiled rasteriser (:mod:`splatk.backends.planar_cpu`), same
@@ -8,9 +9,8 @@ from __future__ import annotations
 
 import torch
 
-from . import RasterOutput, resolve_backend
-from .planar_torch import PLANAR_PROFILE_KINDS, PlanarProfile
-from .planar_torch import rasterize_planar as rasterize_planar_torch
+from . import get
+from .types import PLANAR_PROFILE_KINDS, PlanarProfile, RasterOutput
 
 
 def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -30,16 +30,8 @@ def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
     """
     if profile.kind not in PLANAR_PROFILE_KINDS:
         raise ValueError(f"unknown planar profile {profile.kind!r}; choose from {', '.join(PLANAR_PROFILE_KINDS)}")
-    name = resolve_backend(backend, means.device)
-    if name == "cpu":
-        from .planar_cpu import rasterize_planar_cpu
-
-        return rasterize_planar_cpu(means, quats, scales, opacities, colors, viewmat, K, width,
-                                    height, profile, background)
-    if name == "torch":
-        return rasterize_planar_torch(means, quats, scales, opacities, colors, viewmat, K, width,
-                                      height, profile, background)
-    raise ValueError(f"planar primitives have no {name!r} backend; use 'torch' or 'cpu'")
+    return get(backend, means.device).rasterize_planar(means, quats, scales, opacities, colors, viewmat,
+                                                        K, width, height, profile, background)
 
 
 __all__ = ["PlanarProfile", "rasterize_planar"]

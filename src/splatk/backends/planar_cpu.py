@@ -12,8 +12,9 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from . import RasterOutput
-from .planar_torch import PlanarProfile, planar_visible
+from .types import RasterOutput
+from .planar_torch import planar_visible
+from .types import PlanarProfile
 
 _KIND_CODES = {"gaussian_surfel": 0, "grid": 1}
 

@@ -16,63 +16,26 @@ in (u, v, 1) space, so the intersection is (2DGS Eq. 9-10; peers.md Sec. 5)::
 ``alpha = min(0.999, o * k(u, v))``, pairs with ``alpha < 1/255`` skipped, front-to-back
 compositing by camera depth of the centres (stable), a pixel ending before the splat whose
 ``T * (1 - alpha)`` would fall below ``1e-4`` (T in float64 log space), as the volumetric
-contract in :mod:`splatk.backends`. Which splats are drawn at all is :func:`planar_in_front`:
-centre and the four corners of the 3-sigma square at camera depth > ``NEAR`` (a disk crossing
-the camera plane is dropped whole, in every backend). It omits 2DGS's screen-space low-pass
-fallback (peers.md Sec. 5) and is meant for small images (tests, checks); the native tiled
-version is :mod:`splatk.backends.planar_cpu`, the dispatcher :mod:`splatk.backends.planar`.
+contract in :mod:`splatk.backends`. Which splats are drawn at all is
+:func:`~splatk.functional.planar.planar_in_front`: centre and the four corners of the 3-sigma
+square at camera depth > ``NEAR`` (a disk crossing the camera plane is dropped whole, in every
+backend). It omits 2DGS's screen-space low-pass fallback (peers.md Sec. 5) and is meant for
+small images (tests, checks); the native tiled version is :mod:`splatk.backends.planar_cpu`.
+Both are the ``rasterize_planar`` op of their backend object.
 """
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import torch
 
-from . import ALPHA_MAX, ALPHA_MIN, T_MIN, RasterOutput
+from ..functional.planar import bilinear, gaussian_surfel, planar_in_front
 from ..functional.projection import quats_to_rotmats
+from .types import ALPHA_MAX, ALPHA_MIN, PLANAR_PROFILE_KINDS, T_MIN, PlanarProfile, RasterOutput
 
-#: splats whose centre or 3-sigma-square corners are nearer than this (camera z) are not drawn
-NEAR = 1e-2
-PLANAR_PROFILE_KINDS = ("gaussian_surfel", "grid")
 #: the dense reference holds ~20 float tensors of this many pairs: ~2 GB in float32 at the cap
 MAX_DENSE_PAIRS = 25_000_000
-
-
-class PlanarProfile(NamedTuple):
-    """Opacity profile over a planar splat's normalised (u, v) (support: the unit disk).
-
-    Attributes:
-        kind: ``gaussian_surfel`` (exp(-4.5 r^2), no parameters) or ``grid``.
-        table: ``grid`` only: [N, G, G] values at nodes ``linspace(-1, 1, G)`` indexed [v, u]
-            (bilinear, :func:`bilinear`), one table per primitive; gradients flow into it.
-    """
-
-    kind: str
-    table: torch.Tensor | None = None
-
-
-def bilinear(table: torch.Tensor, idx: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Sample per-primitive tables at (u, v).
-
-    Args:
-        table: [N, G, G] values at nodes ``linspace(-1, 1, G)``, indexed [v, u].
-        idx: [P] primitive of each sample.
-        uv: [P, 2] in [-1, 1] (clamped).
-    Returns:
-        [P] bilinearly interpolated values (exact at the nodes).
-    """
-    g = table.shape[-1]
-    t = ((uv.clamp(-1.0, 1.0) + 1.0) * 0.5 * (g - 1))
-    i0 = t.detach().floor().clamp(0, g - 2)
-    f = t - i0
-    i0 = i0.long()
-    flat = table.reshape(-1)
-    base = idx * (g * g) + i0[:, 1] * g + i0[:, 0]
-    fu, fv = f[:, 0], f[:, 1]
-    t00, t01 = flat[base], flat[base + 1]
-    t10, t11 = flat[base + g], flat[base + g + 1]
-    return (t00 * (1 - fu) + t01 * fu) * (1 - fv) + (t10 * (1 - fu) + t11 * fu) * fv
 
 
 def splat_homographies(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -118,8 +81,6 @@ def ray_splat_uv(M: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
 
 def profile_function(profile: PlanarProfile) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
     """``kernel(uv [P, 2], idx [P]) -> [P]`` of a :class:`PlanarProfile` (0 outside the unit disk)."""
-    from ..kernels.learned_planar import gaussian_surfel
-
     if profile.kind == "gaussian_surfel":
         return lambda uv, idx: gaussian_surfel(uv)
     if profile.kind == "grid":
@@ -127,23 +88,6 @@ def profile_function(profile: PlanarProfile) -> Callable[[torch.Tensor, torch.Te
             raise ValueError("planar profile 'grid' needs a table [N, G, G]")
         return lambda uv, idx: bilinear(profile.table, idx, uv) * ((uv * uv).sum(-1) <= 1.0)
     raise ValueError(f"unknown planar profile {profile.kind!r}; choose from {', '.join(PLANAR_PROFILE_KINDS)}")
-
-
-def planar_in_front(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
-                    viewmat: torch.Tensor) -> torch.Tensor:
-    """[N] bool: the splat's centre and the four corners of its 3-sigma square lie at camera
-    depth > ``NEAR``. Then the whole disk is in front of the camera and its image is an ellipse.
-
-    The corners' depths are ``z + 3 (+-a s_u +- b s_v)`` with ``a``, ``b`` the camera-z
-    components of the disk's axes, so the nearest is ``z - 3 (|a| s_u + |b| s_v)``. Disks that
-    cross the camera plane are rare and dropped whole, in every backend.
-    """
-    with torch.no_grad():
-        rz, tz = viewmat[2, :3], viewmat[2, 3]
-        depth = means @ rz + tz
-        axes_z = quats_to_rotmats(quats)[:, :, :2].mT @ rz  # [N, 2]: camera z of t_u, t_v
-        nearest = depth - 3.0 * (axes_z.abs() * scales).sum(1)
-        return (depth > NEAR) & (nearest > NEAR)
 
 
 def planar_visible(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,

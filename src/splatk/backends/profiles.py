@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from . import GAUSSIAN_SUPPORT_SIGMAS, STUDENT_T_SUPPORT_SIGMAS
+from .types import GAUSSIAN_SUPPORT_SIGMAS, STUDENT_T_SUPPORT_SIGMAS
 
 
 def evaluate_profile(kind: str, r2: torch.Tensor, params: torch.Tensor | None) -> torch.Tensor:

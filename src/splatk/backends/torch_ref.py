@@ -9,16 +9,8 @@ from __future__ import annotations
 
 import torch
 
-from . import (
-    ALPHA_MAX,
-    ALPHA_MIN,
-    T_MIN,
-    TILE_SIZE,
-    Profile,
-    RasterOutput,
-    register_backend,
-)
 from .profiles import evaluate_profile
+from .types import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, Profile, RasterOutput
 
 
 def support_bboxes(means2d: torch.Tensor, conics: torch.Tensor, width: int, height: int):
@@ -59,7 +51,6 @@ def _pairs_in_band(x0, x1, y0, y1, band_y0: int, band_y1: int):
     return g, px, py
 
 
-@register_backend("torch")
 def rasterize_torch(
     means2d: torch.Tensor,
     conics: torch.Tensor,

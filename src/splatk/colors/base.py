@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import torch
 
+from ..backends import Backend
+
 
 class ColorModel:
     """Base class. ``init_primitive_params`` gives raw per-primitive tensors (first dim N)."""
@@ -17,10 +19,10 @@ class ColorModel:
         raise NotImplementedError
 
     def colors(self, prims: dict[str, torch.Tensor], dirs: torch.Tensor, degree: int,
-               fused: bool = False) -> torch.Tensor:
+               backend: Backend) -> torch.Tensor:
         """[M, 3] RGB of the visible primitives seen along ``dirs`` [M, 3] (camera -> mean).
-        ``degree`` is the active SH degree (raised during training); ``fused``: a native fused
-        implementation may be used (see ``backends.fused_cpu``)."""
+        ``degree`` is the active SH degree (raised during training); ``backend`` the render's
+        backend, whose ops (e.g. :meth:`Backend.sh_colors`) a colour model may use."""
         raise NotImplementedError
 
     def base_rgb_params(self, prims) -> dict[str, torch.Tensor]:

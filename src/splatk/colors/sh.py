@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from ..functional.sh import eval_sh, num_sh_bases, rgb_to_sh0
+from ..functional.sh import num_sh_bases, rgb_to_sh0
 from .base import ColorModel, register_color_model
 
 
@@ -25,14 +25,8 @@ class SHColor(ColorModel):
     def learning_rates(self):
         return {"sh0": 0.0025, "sh_rest": 0.0025 / 20}  # 3DGS-MCMC
 
-    def colors(self, prims, dirs, degree, fused=False):
-        degree = min(degree, self.sh_degree)
-        if fused:
-            from ..backends.fused_cpu import eval_sh_fused
-
-            return eval_sh_fused(prims["sh0"], prims["sh_rest"], dirs, degree)
-        coeffs = torch.cat([prims["sh0"], prims["sh_rest"]], dim=1)
-        return eval_sh(coeffs, dirs, degree)
+    def colors(self, prims, dirs, degree, backend):
+        return backend.sh_colors(prims["sh0"], prims["sh_rest"], dirs, min(degree, self.sh_degree))
 
     def base_rgb_params(self, prims):
         return prims["sh0"][:, 0, :], prims["sh_rest"]

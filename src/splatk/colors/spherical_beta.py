@@ -32,7 +32,7 @@ class SphericalBetaColor(ColorModel):
     def learning_rates(self):
         return {"sh0": 0.0025, "sb_lobes": 0.0025}  # DBS sb_params_lr
 
-    def colors(self, prims, dirs, degree, fused=False):
+    def colors(self, prims, dirs, degree, backend):
         base = (SH_C0 * prims["sh0"][:, 0, :] + 0.5).clamp_min(0.0)
         lobes = prims["sb_lobes"]
         theta, phi = lobes[..., 3], lobes[..., 4]

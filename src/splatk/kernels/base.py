@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..backends import Profile
+from ..backends import Backend, Profile
 
 
 @dataclass
@@ -20,14 +20,15 @@ class ViewContext:
         means_cam: [M, 3] camera-space centres.
         scales: [M, 3] activated scales.
         rotmats_cam: [M, 3, 3] primitive rotations in camera space.
-        fused: the render runs on the ``cpu`` backend, so kernels may use the fused native
-            ops (``backends.fused_cpu``) too; False keeps them pure torch.
+        backend: the backend rendering the view; a kernel may take native versions of its
+            ops from it (e.g. :meth:`Backend.learned_profile`). None: the kernel's torch code
+            (views made outside a render: pretraining, plots, export).
     """
 
     means_cam: torch.Tensor | None
     scales: torch.Tensor | None
     rotmats_cam: torch.Tensor | None
-    fused: bool = False
+    backend: Backend | None = None
 
 
 class Kernel(nn.Module):
@@ -41,7 +42,7 @@ class Kernel(nn.Module):
     name: str = "base"
     #: support of the profile in units of the projected sigma (bounding ellipse at r = 1)
     support_sigmas: float = 3.0
-    #: whether :meth:`profile` reads the :class:`ViewContext` (the fused projection skips
+    #: whether :meth:`profile` reads the :class:`ViewContext` (a backend's projection may skip
     #: computing camera-space centres and rotations for kernels that do not)
     needs_view: bool = False
 

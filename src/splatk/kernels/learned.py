@@ -43,8 +43,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backends import Profile
-from ..backends.fused_cpu import (bf16_mlp_available, learned_decode_fused, learned_encode_fused,
-                                  learned_profile_fused)
 from .base import Kernel, ViewContext, read_weights_file, register_kernel
 
 #: the shipped pretrained networks (cosine target, default architecture), made by
@@ -318,11 +316,13 @@ class LearnedKernel(Kernel):
     def encode(self, z3d: torch.Tensor | None, view: ViewContext) -> torch.Tensor:
         """Phi_proj's input [M, D] (see the module docstring), built with one cat."""
         mu = view.means_cam
-        if view.fused and not torch.is_grad_enabled():  # one native pass (same values)
-            return learned_encode_fused(
+        if view.backend is not None:  # one native pass where the backend has one (same values)
+            native = view.backend.learned_encode(
                 z3d if "z" in self.inputs else None, mu, view.scales, view.rotmats_cam,
                 "mu" in self.inputs, "s" in self.inputs, "R" in self.inputs,
                 LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE)
+            if native is not None:
+                return native
         parts = []
         if "z" in self.inputs:
             parts.append(z3d)
@@ -372,19 +372,22 @@ class LearnedKernel(Kernel):
     def profile(self, prims, view: ViewContext) -> Profile:
         """Samples d_i = Phi_dec(r_i^2, z2d) at r_i = i / (k - 1) (paper Eq. 7): table [M, k]."""
         self._check_weights()
-        if (view.fused and not torch.is_grad_enabled() and _use_bf16(self.proj_precision, False)
-                and self._fits_native_profile() and bf16_mlp_available()):
+        native = view.backend
+        if native is not None and _use_bf16(self.proj_precision, False) and self._fits_native_profile():
             # encode, Phi_proj in bf16 and Phi_dec in one native pass (the values of the path below)
-            table = learned_profile_fused(
+            table = native.learned_profile(
                 prims.get("z3d") if "z" in self.inputs else None, view.means_cam, view.scales,
                 view.rotmats_cam, "mu" in self.inputs, "s" in self.inputs, "R" in self.inputs,
                 LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE,
                 self._proj_layers(), self.dec[0::2], self.radii2, LEAKY_SLOPE)
-            return Profile("table", table)
+            if table is not None:
+                return Profile("table", table)
         z2d = self.project(prims.get("z3d"), view)
-        if view.fused and not torch.is_grad_enabled():  # one native pass (same values)
+        if native is not None:  # one native pass where the backend has one (same values)
             first, _, mid, _, last = self.dec
-            return Profile("table", learned_decode_fused(z2d, (first, mid, last), self.radii2, LEAKY_SLOPE))
+            table = native.learned_decode(z2d, (first, mid, last), self.radii2, LEAKY_SLOPE)
+            if table is not None:
+                return Profile("table", table)
         return Profile("table", self.decode(z2d, self.radii2))
 
     # ---- export to plain Gaussians ----------------------------------------------------

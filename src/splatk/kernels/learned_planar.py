@@ -1,4 +1,5 @@
-"""The learned planar kernel (paper Sec. 4.4, Eq. 9) and the Gaussian surfel baseline.
+"""The learned planar kernel (paper Sec. 4.4, Eq. 9); the Gaussian surfel baseline it is pretrained
+towards is :func:`splatk.functional.planar.gaussian_surfel`.
 
 A planar primitive (2DGS-style disk, see :mod:`splatk.backends.planar_torch`) carries a latent
 ``z`` [N, latent_dim] (10 values). Per view, Phi_proj of the volumetric architecture (4 linear
@@ -14,7 +15,7 @@ lie in [0, 1] (the signed output of :mod:`splatk.models.image2d` is for summed i
 
 Rasterisers do not call the decoder per pixel: :meth:`LearnedPlanarKernel.table` samples it on
 a ``G x G`` grid of nodes per primitive and view, and pixels interpolate bilinearly
-(:func:`splatk.backends.planar_torch.bilinear`); :meth:`LearnedPlanarKernel.exact` is the reference.
+(:func:`splatk.functional.planar.bilinear`); :meth:`LearnedPlanarKernel.exact` is the reference.
 Pretraining (Gaussian surfel target, paper Sec. 4.5) is in :mod:`splatk.stages.pretrain_planar`.
 """
 from __future__ import annotations
@@ -23,16 +24,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..backends.planar_torch import bilinear
+from ..functional.planar import SURFEL_SUPPORT_SIGMAS, bilinear, gaussian_surfel
 from .learned import LEAKY_SLOPE, LOG_ANGLE_SCALE, LOG_ANGLE_SHIFT, LOG_DIST_SCALE, _he_init, _mlp
 
-SUPPORT_SIGMAS = 3.0
-
-
-def gaussian_surfel(uv: torch.Tensor) -> torch.Tensor:
-    """Gaussian surfel exp(-(u^2 + v^2) S^2 / 2) at normalised (u, v) (S = 3), 0 outside the disk."""
-    r2 = (uv * uv).sum(-1)
-    return torch.exp(-0.5 * SUPPORT_SIGMAS**2 * r2) * (r2 <= 1.0)
+SUPPORT_SIGMAS = SURFEL_SUPPORT_SIGMAS
 
 
 class LearnedPlanarKernel(nn.Module):

@@ -1,5 +1,5 @@
 """Kernels of planar (surfel) primitives, registered by name: what a :class:`PlanarModel` asks of
-them is a :class:`~splatk.backends.planar_torch.PlanarProfile` for the visible splats of a view.
+them is a :class:`~splatk.backends.PlanarProfile` for the visible splats of a view.
 
 * ``gaussian``: the Gaussian surfel exp(-4.5 (u^2 + v^2)) over the 3-sigma disk (2DGS).
 * ``learned``: :class:`~splatk.kernels.learned_planar.LearnedPlanarKernel` (Phi_proj +
@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..backends.planar_torch import PlanarProfile
+from ..backends import PlanarProfile
 from .base import ViewContext, read_weights_file
 from .learned_planar import LearnedPlanarKernel
 

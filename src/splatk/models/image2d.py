@@ -57,8 +57,9 @@ Rendering (``backend``): ``torch`` lists every (splat, pixel) pair inside the sp
 bbox (integers, no grad), evaluates the kernel on the pairs and sums the colours with
 ``index_add``, in chunks so the pairs in flight stay bounded; it is the reference, runs on any
 device and also serves the ``exact`` learned mode. ``cpu`` hands the same boxes and transformed
-parameters to the native op (:mod:`splatk.backends.image_cpu`, OpenMP, same image and gradients,
-several times faster); ``auto`` picks ``cpu`` when it builds and the splats are on the CPU.
+parameters to the native op (the backend's ``render_image_splats``, :mod:`splatk.backends.image_cpu`,
+OpenMP, same image and gradients, several times faster); ``auto`` picks ``cpu`` when it builds and
+the splats are on the CPU.
 """
 from __future__ import annotations
 
@@ -68,7 +69,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..backends.planar_torch import bilinear
+from .. import backends
+from ..backends import Backend
+from ..functional.planar import bilinear
 
 KERNELS = ("gaussian", "gabor", "learned")
 BACKENDS = ("auto", "torch", "cpu")
@@ -374,30 +377,29 @@ class Splats2D(nn.Module):
         keep = (px >= 0) & (px < self.width) & (py >= 0) & (py < self.height)
         return idx[keep].long(), px[keep], py[keep]
 
-    def uses_native(self) -> bool:
-        """Whether :meth:`render` runs the native op (see the module docstring)."""
-        if self.backend == "torch" or (self.kernel == "learned" and self.exact):
-            if self.backend == "cpu":
-                raise ValueError("the exact learned mode has no cpu backend; use backend torch")
-            return False
-        if self.xy_raw.device.type != "cpu":
-            if self.backend == "cpu":
-                raise ValueError("image backend 'cpu' needs CPU tensors; use backend torch")
-            return False
-        from ..backends.cpu_native import available
+    def resolve_backend(self) -> Backend:
+        """The backend named by ``self.backend`` for the splats' device (what :meth:`render`
+        uses when given none); the exact learned mode, which only the torch path has, refuses
+        the native ``cpu`` backend by name. Raises ``BackendUnavailable`` (with the reason) for
+        a backend that cannot run on the splats' device."""
+        if self.backend == "cpu" and self.kernel == "learned" and self.exact:
+            raise ValueError("the exact learned mode has no cpu backend; use backend torch")
+        return backends.get(self.backend, self.xy_raw.device)
 
-        if self.backend == "cpu" and not available():
-            raise RuntimeError("the native cpu backend could not be built; use backend torch")
-        return available()
+    def uses_native(self, backend: Backend | None = None) -> bool:
+        """Whether :meth:`render` with ``backend`` (default: :meth:`resolve_backend`) runs a native
+        op (see the module docstring)."""
+        backend = self.resolve_backend() if backend is None else backend
+        return not (self.kernel == "learned" and self.exact) and backend.render_image_splats is not None
 
-    def render(self) -> Tensor:
-        """[H, W, 3] image (unclamped sum of the splats)."""
+    def render(self, backend: Backend | None = None) -> Tensor:
+        """[H, W, 3] image (unclamped sum of the splats), drawn with ``backend``'s native op when
+        it has one, else by the torch path. ``backend`` default: :meth:`resolve_backend`."""
+        backend = self.resolve_backend() if backend is None else backend
         means = self.means_px()
         l11, l21, l22 = self.chol_factors()
         table = self.kernel_table() if self.kernel == "learned" and not self.exact else None
-        if self.uses_native():
-            from ..backends.image_cpu import render_image_splats_cpu
-
+        if self.uses_native(backend):
             x0, y0, rx, ry = self._boxes(means.detach(), l11.detach(), l21.detach(), l22.detach())
             bbox = torch.stack([x0, y0, x0 + 2 * rx + 1, y0 + 2 * ry + 1], 1).to(torch.int32).contiguous()
             chol = torch.stack([l11, l21, l22], 1)
@@ -405,8 +407,8 @@ class Splats2D(nn.Module):
                 kind, aux, extras = "table", self.grid, table.reshape(self.n, -1)
             else:
                 kind, aux, extras = self.kernel, GABOR_WAVES if self.kernel == "gabor" else 0, self._extras()
-            return render_image_splats_cpu(means, chol, self.colors, extras, bbox, kind, aux,
-                                           self.width, self.height)
+            return backend.render_image_splats(means, chol, self.colors, extras, bbox, kind, aux,
+                                               self.width, self.height)
         idx, px, py = self._pairs(means.detach(), l11.detach(), l21.detach(), l22.detach())
         # one packed gather per chunk: mean 2, L 3, colour 3, kernel extras
         packed = torch.cat([means, l11[:, None], l21[:, None], l22[:, None], self.colors, self._extras()], 1)

@@ -2,7 +2,7 @@
 
 Same interface as :class:`splatk.models.volumetric.SplatModel` (the trainer, MCMC, save/load and
 eval treat both alike); the differences are two scales per primitive (the disk's in-plane
-sigmas, ``log_scales`` [N, 2]), the rasteriser (:func:`splatk.backends.planar.rasterize_planar`)
+sigmas, ``log_scales`` [N, 2]), the rasteriser (the backend's ``rasterize_planar``)
 and the kernels (:mod:`splatk.kernels.planar`).
 """
 from __future__ import annotations
@@ -10,11 +10,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..backends import resolve_backend
-from ..backends.fused_cpu import use_fused
-from ..backends.planar import rasterize_planar
-from ..backends.planar_torch import planar_in_front
+from ..backends import Backend
 from ..colors import ColorModel, make_color_model
+from ..functional.planar import planar_in_front
 from ..functional.projection import quats_to_rotmats
 from ..kernels import ViewContext
 from ..kernels.planar import PlanarKernel, make_planar_kernel
@@ -72,12 +70,12 @@ class PlanarModel(PrimitiveModel):
         return torch.cat([s, torch.zeros_like(s[:, :1])], 1)
 
     # ---- rendering ----------------------------------------------------------------------
-    def render(self, camera, background: torch.Tensor, sh_degree: int = 3,
-               backend: str = "auto") -> RenderResult:
-        """Render one camera; differentiable in every parameter. ``visible`` lists the drawn
-        primitives (in front of the camera, see :func:`planar_in_front`) in index order."""
+    def render(self, camera, background: torch.Tensor, sh_degree: int = 3, *,
+               backend: Backend) -> RenderResult:
+        """Render one camera with ``backend``'s ops; differentiable in every parameter.
+        ``visible`` lists the drawn primitives (in front of the camera, see
+        :func:`~splatk.functional.planar.planar_in_front`) in index order."""
         dev = self.prims["means"].device
-        backend = resolve_backend(backend, dev)
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
         idx = torch.nonzero(planar_in_front(self.prims["means"], self.prims["quats"], self.scales,
@@ -85,15 +83,14 @@ class PlanarModel(PrimitiveModel):
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         scales = torch.exp(vis["log_scales"])
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree,
-                                fused=use_fused(backend, dev))
+        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, backend)
         if self.kernel.needs_view:
             rw, tw = viewmat[:3, :3], viewmat[:3, 3]
-            view = ViewContext(vis["means"] @ rw.T + tw, scales, rw @ quats_to_rotmats(vis["quats"]))
+            view = ViewContext(vis["means"] @ rw.T + tw, scales, rw @ quats_to_rotmats(vis["quats"]), backend)
         else:
-            view = ViewContext(None, None, None)
+            view = ViewContext(None, None, None, backend)
         profile = self.kernel.profile(vis, view)
-        out = rasterize_planar(vis["means"], vis["quats"], scales, torch.sigmoid(vis["opacity_logits"]),
-                               rgb, viewmat, K, camera.width, camera.height, profile,
-                               background=background.to(dev), backend=backend)
+        out = backend.rasterize_planar(vis["means"], vis["quats"], scales, torch.sigmoid(vis["opacity_logits"]),
+                                       rgb, viewmat, K, camera.width, camera.height, profile,
+                                       background.to(dev))
         return RenderResult(out.colors, out.alphas, idx)

@@ -5,10 +5,8 @@ from typing import NamedTuple
 
 import torch
 
-from ..backends import RasterOutput, rasterize, resolve_backend
-from ..backends.fused_cpu import project_ellipsoids_fused, use_fused
+from ..backends import Backend, RasterOutput
 from ..colors import ColorModel, make_color_model
-from ..functional.projection import project_ellipsoids
 from ..kernels import Kernel, ViewContext, make_kernel
 from .base import PrimitiveModel
 
@@ -61,48 +59,34 @@ class SplatModel(PrimitiveModel):
         camera,
         background: torch.Tensor,
         sh_degree: int = 3,
-        backend: str = "auto",
+        *,
+        backend: Backend,
     ) -> "RenderResult":
-        """Render one camera. Differentiable in every parameter.
-
-        With the ``cpu`` backend, projection and SH colour use the fused native ops as well
-        (``backends.fused_cpu``, same values); ``torch`` keeps everything in torch."""
+        """Render one camera with ``backend``'s ops (``splatk.backends.get``). Differentiable in
+        every parameter."""
         dev = self.prims["means"].device
-        backend = resolve_backend(backend, dev)
-        fused = use_fused(backend, dev)
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
         scales = self.scales
-        if fused:
-            means2d, conics, depths, visible, means_cam, rotmats_cam = project_ellipsoids_fused(
-                self.prims["means"], self.prims["quats"], scales, viewmat, K,
-                camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
-                want_view=self.kernel.needs_view,
-            )
-        else:
-            proj = project_ellipsoids(
-                self.prims["means"], self.prims["quats"], scales, viewmat, K,
-                camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
-            )
-            means2d, conics, depths, visible = proj.means2d, proj.conics, proj.depths, proj.visible
-        idx = torch.nonzero(visible).flatten()
+        proj = backend.project(self.prims["means"], self.prims["quats"], scales, viewmat, K,
+                               camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
+                               want_view=self.kernel.needs_view)
+        idx = torch.nonzero(proj.visible).flatten()
         # index_select: its backward is index_add_, several times faster on the CPU than the
         # accumulating index_put_ that v[idx] records
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, fused=fused)
+        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, backend)
         if not self.kernel.needs_view:
-            view = ViewContext(None, None, None)
+            view = ViewContext(None, None, None, backend)
         else:
-            if not fused:
-                means_cam, rotmats_cam = proj.means_cam, proj.rotmats_cam
-            view = ViewContext(means_cam.index_select(0, idx), scales.index_select(0, idx),
-                               rotmats_cam.index_select(0, idx), fused=fused)
+            view = ViewContext(proj.means_cam.index_select(0, idx), scales.index_select(0, idx),
+                               proj.rotmats_cam.index_select(0, idx), backend)
         profile = self.kernel.profile(vis, view)
-        out: RasterOutput = rasterize(
-            means2d.index_select(0, idx), conics.index_select(0, idx), torch.sigmoid(vis["opacity_logits"]), rgb,
-            depths.detach().index_select(0, idx), profile, camera.width, camera.height,
-            background=background.to(dev), backend=backend,
+        out: RasterOutput = backend.rasterize(
+            proj.means2d.index_select(0, idx), proj.conics.index_select(0, idx),
+            torch.sigmoid(vis["opacity_logits"]), rgb, proj.depths.detach().index_select(0, idx), profile,
+            camera.width, camera.height, background.to(dev),
         )
         return RenderResult(out.colors, out.alphas, idx)
 

@@ -65,6 +65,7 @@ from typing import Callable
 import torch
 from torch import nn
 
+from ..backends import Backend
 from ..colors.base import ColorModel
 from ..data.types import Camera
 from ..metrics import psnr
@@ -140,8 +141,9 @@ def split_holdout(train: list[Camera], every: int) -> tuple[list[Camera], list[C
 
 
 @torch.no_grad()
-def render_psnr(model, cams: list[Camera], background, backend: str = "auto") -> float | None:
-    """Mean PSNR (dB) of ``model`` over ``cams`` (renders clamped to [0, 1]); None without views."""
+def render_psnr(model, cams: list[Camera], background, backend: Backend) -> float | None:
+    """Mean PSNR (dB) of ``model`` rendered with ``backend`` over ``cams`` (renders clamped to
+    [0, 1]); None without views."""
     if not cams:
         return None
     bg = torch.as_tensor(background, dtype=torch.float32)
@@ -161,12 +163,12 @@ class _WeightProbe(ColorModel):
     def __init__(self):
         self.leaf: torch.Tensor | None = None
 
-    def colors(self, prims, dirs, degree, fused=False):
+    def colors(self, prims, dirs, degree, backend):
         self.leaf = torch.ones(dirs.shape[0], 3, device=dirs.device, requires_grad=True)
         return self.leaf
 
 
-def blending_weights(model, cams: list[Camera], backend: str = "auto") -> torch.Tensor:
+def blending_weights(model, cams: list[Camera], backend: Backend) -> torch.Tensor:
     """[N] sum over views and pixels of each primitive's blending weight T * alpha.
 
     Computed through the renderer itself (the colour model swapped for a probe), so it matches
@@ -190,7 +192,7 @@ def blending_weights(model, cams: list[Camera], backend: str = "auto") -> torch.
 
 @torch.no_grad()
 def render_psnr_keeping(model, rows: torch.Tensor, cams: list[Camera], background,
-                        backend: str = "auto") -> float | None:
+                        backend: Backend) -> float | None:
     """:func:`render_psnr` of ``model`` with only the primitives ``rows`` (indices); the model
     is left as it was."""
     full = {k: v.data for k, v in model.prims.items()}
@@ -205,7 +207,7 @@ def render_psnr_keeping(model, rows: torch.Tensor, cams: list[Camera], backgroun
 
 
 def compaction_cut(model, cams: list[Camera], background, tolerance_db: float, min_keep: float,
-                   backend: str = "auto", steps: int = 20) -> tuple[torch.Tensor, dict]:
+                   backend: Backend, steps: int = 20) -> tuple[torch.Tensor, dict]:
     """Which primitives to keep: the fewest of the most contributing (blending weight summed over
     ``cams``) whose render keeps the mean PSNR over ``cams`` within ``tolerance_db`` of the full
     model's. Kept fractions are tried on a grid of ``steps`` from ``min_keep`` to 1, by bisection
@@ -412,7 +414,7 @@ class AutoBudget:
         """One complete short run per budget, from the start; keep doubling while the held-out
         PSNR at the end of the run gains more than the threshold over the previous budget's."""
         stopped = lambda: bool(should_stop and should_stop())  # noqa: E731
-        bg, backend = trainer.background.cpu(), trainer.cfg.backend
+        bg, backend = trainer.background.cpu(), trainer.backend
         while self.chosen is None:
             s = len(self.stages)
             budget = self.budgets[s]
@@ -446,7 +448,7 @@ class AutoBudget:
         budget = self.budgets[s]
         if not train_stage(budget, (s + 1) * self.cfg.stage_share):
             return False
-        value = render_psnr(trainer.model, holdout, trainer.background.cpu(), trainer.cfg.backend)
+        value = render_psnr(trainer.model, holdout, trainer.background.cpu(), trainer.backend)
         num = trainer.model.num_primitives
         prev = self.stages[-1] if self.stages else None
         gain = None if prev is None else value - prev["holdout_psnr"]
@@ -461,7 +463,7 @@ class AutoBudget:
     def _paired_stage(self, trainer: Trainer, holdout, s: int, train_stage) -> bool:
         """One stage trained twice from the same start: doubled cap vs the current cap."""
         budget, end = self.budgets[s], (s + 1) * self.cfg.stage_share
-        bg, backend = trainer.background.cpu(), trainer.cfg.backend
+        bg, backend = trainer.background.cpu(), trainer.backend
         if self.branch != "control":
             self.branch = "grown"
             if not train_stage(budget, end):
@@ -554,7 +556,7 @@ class AutoBudget:
         (:func:`compaction_cut`); MCMC's cap follows, so it never grows them back."""
         cams = self._every_train_view(trainer, holdout)
         keep, report = compaction_cut(trainer.model, cams, trainer.background.cpu(), self.cfg.compact_tolerance_db,
-                                      self.cfg.compact_min_keep, trainer.cfg.backend,
+                                      self.cfg.compact_min_keep, trainer.backend,
                                       steps=self.cfg.compact_grid_steps)
         if not bool(keep.all()):
             keep_rows(trainer, keep)
@@ -569,7 +571,7 @@ class AutoBudget:
         return report
 
     def prune(self, trainer: Trainer, holdout: list[Camera]) -> dict:
-        model, backend = trainer.model, trainer.cfg.backend
+        model, backend = trainer.model, trainer.backend
         bg = trainer.background.cpu()
         cams = self._every_train_view(trainer, holdout)
         before = render_psnr(model, holdout, bg, backend)

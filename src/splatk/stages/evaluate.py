@@ -14,7 +14,7 @@ from typing import Callable
 
 import torch
 
-from ..backends import resolve_backend
+from .. import backends
 from ..data import load_scene
 from ..device import resolve_device
 from ..errors import InputError
@@ -35,6 +35,7 @@ def run_eval(
 ) -> dict:
     run = Path(run)
     dev = resolve_device(device, backend)
+    renderer = backends.get(backend, dev)  # resolved once for every view
     model, meta = load_model(run / "model.pt")
     model = model.to(dev)
     scene_path = scene_path or meta.get("scene")
@@ -52,10 +53,10 @@ def run_eval(
     if save_renders:
         render_dir.mkdir(parents=True, exist_ok=True)
     with torch.no_grad():
-        model.render(cams[0], bg, backend=backend)  # warm-up (native build, caches)
+        model.render(cams[0], bg, backend=renderer)  # warm-up (caches)
         for i, cam in enumerate(cams):
             t0 = time.perf_counter()
-            out = model.render(cam, bg, backend=backend)
+            out = model.render(cam, bg, backend=renderer)
             if dev.type == "cuda":  # the render is asynchronous there
                 torch.cuda.synchronize(dev)
             times.append((time.perf_counter() - t0) * 1000)
@@ -83,7 +84,7 @@ def run_eval(
         "footprint_mb": model.footprint_bytes() / 2**20,
         "render_ms": statistics.median(times),
         "render_ms_mean": sum(times) / len(times),
-        "backend": resolve_backend(backend, dev),  # what rendered, not "auto"
+        "backend": renderer.name,  # what rendered, not "auto"
         "device": str(dev),
         "threads": torch.get_num_threads(),
         "lpips_net": lpips_net if "lpips" in metrics else None,

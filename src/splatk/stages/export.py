@@ -98,30 +98,32 @@ def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_
                    overwrite: bool = False) -> Path:
     """Test-view PNGs plus ``path.gif`` interpolated between train cameras, into a folder that
     is new, empty, or (with ``overwrite``) an earlier renders export."""
+    from .. import backends
     from ..data import load_scene
 
     out = Path(out)
     model, meta = load_model(Path(run) / "model.pt")
     inputs = [Path(run), meta.get("scene")]
     check_output_dir(out, RENDERS_KIND, overwrite, inputs=inputs)
+    renderer = backends.get(backend, "cpu")
     scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0),
                        test_every=meta.get("test_every", 8),
                        background=tuple(meta["background"]) if meta.get("background") else None)
     with OutputDir(out, RENDERS_KIND, overwrite, inputs=inputs):
-        _write_renders(model, scene, out, backend, gif_frames)
+        _write_renders(model, scene, out, renderer, gif_frames)
     return out
 
 
-def _write_renders(model, scene, out: Path, backend: str, gif_frames: int) -> None:
+def _write_renders(model, scene, out: Path, renderer, gif_frames: int) -> None:
     from ..render_path import interpolate_cameras
 
     bg = torch.tensor(scene.background, dtype=torch.float32)
     frames = []
     with torch.no_grad():
         for cam in scene.test:
-            write_png(out / f"{Path(cam.name).stem}.png", model.render(cam, bg, backend=backend).image)
+            write_png(out / f"{Path(cam.name).stem}.png", model.render(cam, bg, backend=renderer).image)
         for cam in interpolate_cameras(scene.train, gif_frames):
-            img = model.render(cam, bg, backend=backend).image.clamp(0, 1)
+            img = model.render(cam, bg, backend=renderer).image.clamp(0, 1)
             frames.append((img.numpy() * 255 + 0.5).astype(np.uint8))
     if frames:
         from PIL import Image

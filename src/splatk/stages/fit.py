@@ -352,7 +352,7 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
                       selection_train, initial_psnr, resume, on_start, on_step, should_stop)
     with OutputDir(out, RUN_KIND, overwrite, inputs=[scene_path]):
         _write_config(out, scene_path, cfg, config_sources or {})
-        initial_psnr = render_psnr(trainer.model, scene.test, scene.background, cfg.train.backend)
+        initial_psnr = render_psnr(trainer.model, scene.test, scene.background, trainer.backend)
         return _train(scene_path, out, cfg, scene, fingerprint, trainer, auto, holdout, all_train,
                       selection_train, initial_psnr, resume, on_start, on_step, should_stop)
 
@@ -401,7 +401,7 @@ def _train(scene_path, out: Path, cfg: FitConfig, scene, fingerprint: str, train
         tr = _refit_trainer(scene, all_train, cfg, budget)
         # the final model descends from this one, so its PSNR is the run's initial PSNR
         current["trainer"] = tr
-        current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, cfg.train.backend)
+        current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, tr.backend)
         return tr
 
     def make_short_trainer(budget: int) -> Trainer:

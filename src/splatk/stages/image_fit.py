@@ -205,6 +205,7 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
     model = Splats2D(cfg.kernel, n, h, w, grid=cfg.grid, exact=cfg.exact, generator=gen,
                      latent_dim=cfg.latent_dim, backend=cfg.backend, shapes=shapes).to(device)
     target = target.to(device)
+    renderer = model.resolve_backend()  # once: every iteration draws with it
     s0 = float(model.chol[0, 0].detach())
     opt = _optimizer(model, cfg, s0)
     t0 = time.perf_counter()
@@ -221,7 +222,7 @@ def fit_image(target: torch.Tensor, cfg: ImageFitConfig,
         scale = 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * frac))  # cosine decay to 0.1x
         for g in opt.param_groups:
             g["lr"] = g["base_lr"] * scale
-        img = model.render()
+        img = model.render(renderer)
         loss = ((img - target) ** 2).mean()  # L2 (GaussianImage)
         opt.zero_grad(set_to_none=True)
         loss.backward()

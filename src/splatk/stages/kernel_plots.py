@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .. import backends
 from ..backends.profiles import evaluate_profile
 from ..data.types import Camera
 from ..functional.projection import project_ellipsoids
@@ -227,6 +228,7 @@ def _write_kernel_plots(
     fig = Figure(figsize=(2.6 * nv, 2.4 * rows + 0.4), layout="constrained")
     FigureCanvasAgg(fig)
     bg = torch.tensor(background, dtype=torch.float32)
+    renderer = backends.get(backend, "cpu") if render else None
     view_json = []
     edges = np.linspace(0.0, 1.0, HIST_BINS + 1)
     for i, v in enumerate(per_view):
@@ -236,7 +238,7 @@ def _write_kernel_plots(
         if render:
             ax = fig.add_subplot(rows, nv, i + 1)
             with torch.no_grad():
-                img = model.render(cam, bg, backend=backend).image.clamp(0, 1).numpy()
+                img = model.render(cam, bg, backend=renderer).image.clamp(0, 1).numpy()
             ax.imshow(img)
             ax.set_axis_off()
             ax.set_title(cam.name, fontsize=8)

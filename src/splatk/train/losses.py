@@ -3,21 +3,16 @@ from __future__ import annotations
 
 import torch
 
-from ..metrics.ssim import ssim
+from ..backends import Backend
 
 
-def photometric_loss(image: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2,
-                     fused: bool = False) -> torch.Tensor:
-    """image, target: [H, W, 3]. ``fused``: the native SSIM (same value, one pass)."""
+def photometric_loss(image: torch.Tensor, target: torch.Tensor, backend: Backend,
+                     lambda_dssim: float = 0.2) -> torch.Tensor:
+    """image, target: [H, W, 3]; the SSIM term is ``backend.ssim`` (the render's backend)."""
     l1 = (image - target).abs().mean()
     if lambda_dssim <= 0:
         return l1
-    if fused:
-        from ..backends.fused_cpu import ssim_mean_fused
-
-        s = ssim_mean_fused(image, target.detach())
-    else:
-        s = ssim(image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
+    s = backend.ssim(image, target.detach())
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s)
 
 

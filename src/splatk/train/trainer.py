@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..backends import resolve_backend
-from ..backends.fused_cpu import use_fused
+from .. import backends
+from ..backends import Backend
 from ..data.types import Scene
 from ..errors import TrainingStalled
 from ..models.volumetric import SplatModel
@@ -137,10 +137,15 @@ class StepInfo:
 
 
 class Trainer:
-    def __init__(self, scene: Scene, model: SplatModel, config: TrainConfig):
+    """Trains ``model`` on ``scene``. ``backend``: the ops every step uses; default
+    ``backends.get(config.backend, config.device)``, resolved here once (a benchmark may pass
+    its own object)."""
+
+    def __init__(self, scene: Scene, model: SplatModel, config: TrainConfig, backend: Backend | None = None):
         self.scene = scene
         self.cfg = config
         self.device = torch.device(config.device)
+        self.backend = backends.get(config.backend, self.device) if backend is None else backend
         self.model = model.to(self.device)
         self.background = torch.tensor(scene.background, dtype=torch.float32, device=self.device)
         self.extent = scene.extent
@@ -167,8 +172,6 @@ class Trainer:
         )
         self._build_optimizers()
         self.targets = [c.image_float(self.device) for c in scene.train]
-        # the cpu backend also fuses the D-SSIM loss (backends.fused_cpu; same value)
-        self.fused = use_fused(resolve_backend(config.backend, self.device), self.device)
         self._snapshot = None
         # False while the snapshot a rollback would restore is itself all invisible
         self._invisible_check = True
@@ -225,8 +228,8 @@ class Trainer:
         vi = self._next_view()
         cam = self.scene.train[vi]
         target = self.targets[vi]
-        out = self.model.render(cam, self.background, sh_degree=self.sh_degree(), backend=self.cfg.backend)
-        loss = photometric_loss(out.image, target, self.cfg.lambda_dssim, fused=self.fused)
+        out = self.model.render(cam, self.background, sh_degree=self.sh_degree(), backend=self.backend)
+        loss = photometric_loss(out.image, target, self.backend, self.cfg.lambda_dssim)
         loss = loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
         event = None
         if not torch.isfinite(loss):
