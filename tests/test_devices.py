@@ -1,7 +1,7 @@
 """`--device`: the engine's torch paths give the CPU's images and gradients on a GPU, and every
 command that takes `--device` trains / renders there end to end.
 
-CI has no GPU, so the CUDA tests skip there; they ran on an H100 (docs/measurements.md, "GPU
+CI has no GPU, so the CUDA tests skip there; they ran on an H100 (docs/results.md, "GPU
 check"). The checks of a bad `--device` run everywhere.
 """
 from __future__ import annotations

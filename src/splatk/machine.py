@@ -1,10 +1,10 @@
 """What machine a result came from, recorded next to every bench figure.
 
 Training amplifies rounding differences: the same run (seed, code, settings) is bit-identical on
-one machine, across thread counts too, yet moved by up to 0.74 dB between sessions on other CPUs
-(docs/measurements.md, session 12). The native backend builds with ``-march=native`` and torch
-picks its vector kernels by CPU capability, so a figure is only comparable with one from the same
-CPU features; this says which.
+one machine, across thread counts too, yet moves between CPUs ("Reading these figures" in
+docs/results.md). The native backend builds with ``-march=native`` and torch picks its vector
+kernels by CPU capability, so a figure is only comparable with one from the same CPU features;
+this says which.
 """
 from __future__ import annotations
 
