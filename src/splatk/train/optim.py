@@ -54,6 +54,29 @@ class PrimitiveAdam:
                 st["exp_avg_sq"][rows] = 0
 
     @torch.no_grad()
+    def reset_moments_of(self, name: str) -> None:
+        """Zero Adam's moments of one tensor (3DGS's opacity reset)."""
+        st = self.opt.state.get(self._group(name)["params"][0])
+        if st:
+            st["exp_avg"].zero_()
+            st["exp_avg_sq"].zero_()
+
+    @torch.no_grad()
+    def keep_rows(self, keep: torch.Tensor) -> None:
+        """Keep only the rows where ``keep`` [N] is True in every per-primitive tensor, with their
+        Adam moments (pruning)."""
+        for g in self.opt.param_groups:
+            old = g["params"][0]
+            new = nn.Parameter(old.data[keep].clone())
+            st = self.opt.state.pop(old, None)
+            if st:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    st[key] = st[key][keep].clone()
+                self.opt.state[new] = st
+            g["params"][0] = new
+            self.prims[g["name"]] = new
+
+    @torch.no_grad()
     def append_rows(self, new_rows: dict[str, torch.Tensor]) -> None:
         """Append rows to every per-primitive tensor, with zero Adam moments."""
         for name, rows in new_rows.items():

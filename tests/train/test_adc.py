@@ -1,0 +1,105 @@
+"""3DGS adaptive density control: clone, split, prune and opacity reset decisions on a
+hand-computed case, with Adam's moments kept in step with every row edit."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from splatk.models.volumetric import SplatModel
+from splatk.train.adc import ADCConfig, ADCStrategy, screen_radii
+from splatk.train.optim import PrimitiveAdam
+
+EXTENT = 10.0  # percent_dense 0.01 -> clone at largest scale <= 0.1, split above
+
+
+def four_primitives() -> tuple[SplatModel, PrimitiveAdam]:
+    """0: small, hot -> clone; 1: large, hot -> split; 2: small, cold, transparent -> prune;
+    3: large, cold -> kept."""
+    pts = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0], [3.0, 0, 0]])
+    model = SplatModel.from_points(pts, torch.full((4, 3), 0.5), color_options={"sh_degree": 0})
+    with torch.no_grad():
+        model.prims["log_scales"].data[:] = torch.log(torch.tensor([[0.05] * 3, [0.5, 0.2, 0.2],
+                                                                  [0.05] * 3, [0.5] * 3]))
+        model.prims["opacity_logits"].data[:] = torch.logit(torch.tensor([0.5, 0.5, 0.004, 0.5]))
+    opt = PrimitiveAdam(model.prims, {k: 1e-3 for k in model.prims})
+    loss = sum(p.sum() for p in model.prims.values())
+    loss.backward()
+    opt.step()  # Adam moments exist, row i's moment is distinct per tensor
+    return model, opt
+
+
+def observe(strategy: ADCStrategy, grads_ndc: list[float], width=200, height=100, radii=None):
+    """One view in which every primitive is seen with the given NDC gradient norms (along x)."""
+    g = torch.tensor(grads_ndc)
+    n = len(grads_ndc)
+    pix = torch.stack([g / (0.5 * width), torch.zeros_like(g)], -1)  # pixel-space gradient
+    strategy.observe(600, n, torch.arange(n), pix, torch.tensor(radii or [1.0] * n), width, height)
+
+
+def test_clone_split_prune_as_3dgs_decides():
+    model, opt = four_primitives()
+    strategy = ADCStrategy(ADCConfig(), EXTENT)
+    observe(strategy, [3e-4, 3e-4, 1e-4, 1e-4])
+    observe(strategy, [3e-4, 1e-4, 1e-4, 1e-4])  # primitive 1's mean: 2e-4, exactly the threshold
+    before = {k: v.detach().clone() for k, v in model.prims.items()}
+    strategy.step(600, 0.1, model, opt, generator=torch.Generator().manual_seed(0))
+    assert strategy.last_stats == {"cloned": 1, "split": 1, "pruned": 1, "num": 5}
+    means = model.prims["means"].detach()
+    # kept in order: 0 and 3 (the originals kept), then the clone of 0, then 1's two samples
+    assert torch.equal(means[0], before["means"][0]) and torch.equal(means[1], before["means"][3])
+    assert torch.equal(means[2], before["means"][0])
+    samples = means[3:]
+    assert not torch.equal(samples[0], samples[1])
+    # sampled from primitive 1's Gaussian (scales 0.5 / 0.2 / 0.2 along the axes): within 5 sigma
+    assert ((samples - before["means"][1]).abs() <= 5 * torch.tensor([0.5, 0.2, 0.2])).all()
+    expected = before["log_scales"][1] - math.log(1.6)
+    assert torch.allclose(model.prims["log_scales"].detach()[3:], expected.expand(2, 3))
+    # Adam moments follow the rows: kept rows keep theirs, new rows start at zero
+    st = opt.opt.state[opt._group("means")["params"][0]]
+    assert st["exp_avg"].shape[0] == 5 and (st["exp_avg"][2:] == 0).all() and (st["exp_avg"][:2] != 0).all()
+    assert all(model.prims[k] is opt._group(k)["params"][0] for k in model.prims)
+
+
+def test_large_primitives_pruned_only_after_the_first_reset():
+    model, opt = four_primitives()
+    strategy = ADCStrategy(ADCConfig(), EXTENT)
+    observe(strategy, [0.0] * 4, radii=[30.0, 1.0, 1.0, 1.0])  # 0: 30 px on screen
+    strategy.step(600, 0.1, model, opt)
+    assert model.num_primitives == 3  # only the transparent one
+    observe(strategy, [0.0] * 3, radii=[30.0, 1.0, 1.0])
+    with torch.no_grad():
+        model.prims["log_scales"].data[2] = math.log(2.0)  # 0.2 x the extent in the world
+    strategy.step(3100, 0.2, model, opt)
+    assert model.num_primitives == 1  # the screen-large and the world-large ones
+
+
+def test_opacity_reset_caps_at_one_percent_and_clears_moments():
+    model, opt = four_primitives()
+    with torch.no_grad():
+        model.prims["opacity_logits"].data[2] = math.log(0.008 / 0.992)  # visible, below the cap
+    strategy = ADCStrategy(ADCConfig(), EXTENT)
+    strategy.step(3000, 0.1, model, opt)  # a densify step too (nothing hot, nothing transparent)
+    assert model.num_primitives == 4
+    assert torch.allclose(model.opacities.max(), torch.tensor(0.01), atol=1e-6)
+    assert model.opacities[2].item() == pytest.approx(0.008, rel=1e-4)  # below the cap: unchanged
+    st = opt.opt.state[opt._group("opacity_logits")["params"][0]]
+    assert (st["exp_avg"] == 0).all()
+    strategy.step(15000, 0.5, model, opt)  # densification over: no reset after densify_until
+    assert strategy.last_stats == {}
+
+
+def test_cap_keeps_clones_and_splits_within_the_budget():
+    model, opt = four_primitives()
+    strategy = ADCStrategy(ADCConfig(cap_max=5), EXTENT)
+    observe(strategy, [3e-4, 3e-4, 1e-4, 1e-4])
+    strategy.step(600, 0.1, model, opt)
+    assert strategy.last_stats["cloned"] == 1 and strategy.last_stats["split"] == 0
+
+
+def test_screen_radii_of_a_circle_and_an_ellipse():
+    # normalised conic of a circle of radius 4 px at the support (r2 = |d|^2 / 16 < 1), 3-sigma support
+    assert screen_radii(torch.tensor([[1 / 16, 0.0, 1 / 16]]), 3.0).item() == pytest.approx(4.0)
+    # an axis-aligned ellipse with half-axes 2 and 5 px; a 1-sigma support reports 3x as 3DGS measures
+    assert screen_radii(torch.tensor([[1 / 4, 0.0, 1 / 25]]), 1.0).item() == pytest.approx(15.0)
