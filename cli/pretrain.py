@@ -20,13 +20,27 @@ from splatk.stages.pretrain import TARGETS, PretrainConfig, run_pretrain
 @click.option("--steps", type=int, default=PretrainConfig.steps, show_default=True,
               help="Joint steps of Phi_proj and Phi_dec (after the decoder warm-up).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@click.option("--proj-inputs", help="Volumetric: Phi_proj's inputs, a comma list of z (the latent z3D), mu (camera-"
+              "space centre), s (scales), R (camera-space rotation), as paper Tab. 3. [default: z,mu,s,R]")
+@click.option("--latent-dim", type=click.IntRange(1, 64), help="Volumetric: floats of z3D per primitive. [default: 5]")
+@click.option("--latent2d-dim", type=click.IntRange(1, 64), help="Volumetric: floats of z2D. [default: 5]")
+@click.option("--proj-width", type=click.IntRange(1, 1024), help="Volumetric: width of Phi_proj. [default: 64]")
+@click.option("--dec-width", type=click.IntRange(1, 256), help="Volumetric: width of Phi_dec. [default: 4]")
+@click.option("--overwrite", is_flag=True, allow_from_autoenv=False, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def command(kind, target, out, steps, seed, overwrite, quiet):
+def command(kind, target, out, steps, seed, proj_inputs, latent_dim, latent2d_dim, proj_width, dec_width,
+            overwrite, quiet):
     """Fit the learned kernel's networks to a target profile (paper Sec. 4.5).
 
-    Use the result with `splatk fit --kernel learned --kernel-weights OUT`.
+    Use the result with `splatk fit --kernel learned --kernel-weights OUT`; the fit takes the
+    network shape (--proj-inputs, --latent-dim, ...) from the file.
     """
+    arch = {k: v for k, v in (("proj_inputs", proj_inputs), ("latent_dim", latent_dim),
+                               ("latent2d_dim", latent2d_dim), ("proj_width", proj_width),
+                               ("dec_width", dec_width)) if v is not None}
+    if arch and kind == "planar":
+        raise click.UsageError("--proj-inputs, --latent-dim, --latent2d-dim, --proj-width and --dec-width "
+                               "shape the volumetric kernel's networks only")
     console = Console(stderr=True)
     progress = None if quiet else Progress(
         TextColumn("[bold]pretrain {task.fields[target]}"), BarColumn(), MofNCompleteColumn(),
@@ -54,7 +68,8 @@ def command(kind, target, out, steps, seed, overwrite, quiet):
                 PlanarPretrainConfig(steps=steps, seed=seed)
             path = run_pretrain_planar(out, pcfg, on_step=on_step, overwrite=overwrite)
         else:
-            path = run_pretrain(target, out, steps=steps, seed=seed, on_step=on_step, overwrite=overwrite)
+            path = run_pretrain(target, out, steps=steps, seed=seed, kernel_options=arch, on_step=on_step,
+                                overwrite=overwrite)
     finally:
         if progress is not None:
             progress.stop()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
 
 import torch
 
@@ -159,7 +160,9 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         if key in opts:
             w = opts.pop(key)
             if cfg.kernel == "learned":
-                kernel_options["weights"] = "none" if w is None else str(w)
+                kernel_options["weights"] = _weights_path(w)
+    if cfg.kernel == "learned" and cfg.primitive == "volumetric" and base is None:
+        _adopt_network_shape(kernel_options)
     cfg.kernel_options = kernel_options
     auto_options = opts.pop("auto_budget", None)
     budget_bytes = opts.pop("budget_bytes", None)
@@ -205,6 +208,29 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
             cfg.train.budget = _read_count("budget", budget, budget, sources)
     check_fit_config(cfg, sources)
     return cfg, notes
+
+
+def _weights_path(w) -> str:
+    """``default``, ``none``, or the absolute path of a weights file (a resumed run or a bench
+    started elsewhere finds it)."""
+    if w is None or str(w).lower() in ("none", "default"):
+        return "none" if w is None else str(w).lower()
+    return str(Path(str(w)).expanduser().absolute())
+
+
+def _adopt_network_shape(kernel_options: dict) -> None:
+    """A weights file from `splatk pretrain` fixes the networks' shape: take the shape options
+    it was made with, unless they were given (a mismatch is then the kernel's error)."""
+    from ..kernels.learned import ARCH_OPTIONS, WEIGHTS_FORMAT
+    from ..kernels.base import read_weights_file
+
+    weights = kernel_options.get("weights")
+    if not isinstance(weights, str) or weights.lower() in ("default", "none") or not Path(weights).is_file():
+        return
+    shape = read_weights_file(Path(weights), WEIGHTS_FORMAT, "learned-kernel", "splatk pretrain").get("options", {})
+    for name in ARCH_OPTIONS:
+        if name in shape and name not in kernel_options:
+            kernel_options[name] = shape[name]
 
 
 def _read_count(name: str, given, text, sources: dict) -> int:
