@@ -11,7 +11,7 @@ symmetric) kernel over the disk's local coordinates::
 
 (u, v) in [-1, 1]^2 spans the disk's 3-sigma square; the support is the unit disk. The output
 keeps the paper's sigmoid: in 3D the kernel is an opacity that is alpha-composited, so it must
-lie in [0, 1] (the signed output of :mod:`splatk.models.image2d` is for summed images only).
+lie in [0, 1] (the signed output of :mod:`splatk.image.kernels` is for summed images only).
 
 Rasterisers do not call the decoder per pixel: :meth:`LearnedPlanarKernel.table` samples it on
 a ``G x G`` grid of nodes per primitive and view, and pixels interpolate bilinearly
