@@ -193,8 +193,7 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
     if cfg.train.init_scale > 0:
         scale_factor = cfg.train.init_scale
     elif cfg.train.init == "random":
-        support = (GAUSSIAN_SUPPORT_SIGMAS if cfg.primitive == "planar" else
-                   getattr(KERNELS.get(("volumetric", cfg.kernel)), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS))
+        support = getattr(KERNELS.get((cfg.primitive, cfg.kernel)), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS)
         scale_factor = 0.1 * GAUSSIAN_SUPPORT_SIGMAS / support
     else:
         scale_factor = 1.0
