@@ -39,8 +39,9 @@ _CHILD = """
 import json, sys, torch
 torch.set_num_threads(1)
 from pathlib import Path
-from splatk.stages.image_fit import ImageFitConfig, run_image_fit
-from splatk.models.image2d import bytes_per_primitive, network_bytes, num_primitives
+from splatk.image.bytes import bytes_per_primitive, network_bytes, num_primitives
+from splatk.image.fit import ImageFitConfig
+from splatk.stages.image_fit import run_image_fit
 a = json.loads(sys.argv[1])
 kernel, budget, shapes = a["kernel"], a["budget"], ImageFitConfig.shapes
 if kernel.startswith("learned-shapes"):  # learned-shapesK: a palette of K shapes (0: a latent per splat)
@@ -86,7 +87,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     a = ap.parse_args()
     if a.latent_dim is None:  # imported here: the parent process needs torch only for this default
-        from splatk.stages.image_fit import ImageFitConfig
+        from splatk.image.fit import ImageFitConfig
         a.latent_dim = ImageFitConfig.latent_dim
     photos = sorted(IMAGES.glob("*.png"))
     if a.images:

@@ -8,7 +8,7 @@ import click
 from rich.console import Console
 
 from splatk.backends import backend_names
-from splatk.kernels import KERNELS
+from splatk.kernels import kernel_names
 from splatk.colors import COLOR_MODELS
 from splatk.stages.fit import boost_short_run_lrs, run_fit, scale_schedules_to_run
 from splatk.stages.fit_config import PRIMITIVES, fit_config_from_options
@@ -24,7 +24,7 @@ _CLI_ONLY = ("scale_schedules", "short_run_lrs")
 @click.argument("scene", type=click.Path(path_type=Path), required=False)
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Run folder to write.")
 @click.option("--preset", help="YAML preset name (presets/) or file; command line beats preset.")
-@click.option("--kernel", type=click.Choice(sorted(KERNELS)), help="Splatting kernel. [default: gaussian]")
+@click.option("--kernel", type=click.Choice(kernel_names()), help="Splatting kernel. [default: gaussian]")
 @click.option("--k", "k", type=int, help="Learned kernel: profile samples per primitive (2, 4, 8). [default: 2]")
 @click.option("--kernel-weights", type=click.Path(path_type=Path), help="Learned kernel: pretrained networks from `splatk pretrain`.")
 @click.option("--color", type=click.Choice(sorted(COLOR_MODELS)), help="Colour model: spherical harmonics or spherical Beta. [default: sh]")

@@ -9,8 +9,10 @@ from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                            TimeRemainingColumn)
 
-from splatk.models.image2d import BACKENDS, KERNELS
-from splatk.stages.image_fit import ImageFitConfig, run_image_fit
+from splatk.image.fit import ImageFitConfig
+from splatk.image.kernels import KERNELS
+from splatk.image.model import BACKENDS
+from splatk.stages.image_fit import run_image_fit
 
 _D = ImageFitConfig()
 
@@ -54,7 +56,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
     The image is the plain sum of the splats (GaussianImage style); see
-    `splatk.models.image2d` for the kernels and the byte accounting.
+    `splatk.image` for the kernels and the byte accounting.
     """
     import torch
 

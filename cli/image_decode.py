@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from splatk.models.image2d import BACKENDS
+from splatk.image.model import BACKENDS
 from splatk.stages.image_fit import decode_image
 
 

@@ -25,7 +25,7 @@ from splatk.models.planar import PlanarModel
 from splatk.stages.autobudget import AutoBudgetConfig
 from splatk.stages.evaluate import run_eval
 from splatk.stages.fit import FitConfig, run_fit, scale_schedules_to_run
-from splatk.stages.image_fit import ImageFitConfig, fit_image
+from splatk.image.fit import ImageFitConfig, fit_image
 from splatk.train.trainer import TrainConfig
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")

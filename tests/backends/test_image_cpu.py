@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from splatk.backends.image_cpu import render_image_splats_cpu
-from splatk.models.image2d import GABOR_WAVES, KERNELS, Splats2D
+from splatk.image.kernels import GABOR_WAVES, KERNELS
+from splatk.image.model import Splats2D
 
 
 def _native_or_skip():

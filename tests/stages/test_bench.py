@@ -192,7 +192,7 @@ def test_stability_matrix_2x2(scene, tmp_path):
 
 # ---- planar primitives ------------------------------------------------------------------------
 def test_planar_bytes_per_primitive_counted_from_the_planar_model():
-    from splatk.kernels.planar import make_planar_kernel
+    from splatk.kernels import make_kernel
 
     gauss, _ = fit_config_for({"kernel": "gaussian", "budget_bytes": "1MB"}, {"sh_degree": 3, "primitive": "planar"})
     learned, notes = fit_config_for({"kernel": "learned", "budget_bytes": "1MB"},
@@ -201,7 +201,7 @@ def test_planar_bytes_per_primitive_counted_from_the_planar_model():
     l_bytes, l_nets = bytes_per_primitive(learned)
     assert g_bytes == 4 * (3 + 2 + 4 + 1 + 16 * 3) and g_nets == 0  # two in-plane scales
     assert l_bytes == g_bytes + 4 * 10  # the 10-float latent z
-    assert l_nets == 4 * sum(p.numel() for p in make_planar_kernel("learned").parameters()) > 0
+    assert l_nets == 4 * sum(p.numel() for p in make_kernel("learned", "planar").parameters()) > 0
     assert gauss.train.budget == 2**20 // g_bytes
     assert learned.train.budget == (2**20 - l_nets) // l_bytes == notes["budget"]["budget"]
 
@@ -224,12 +224,12 @@ def test_planar_method_ids_are_distinct():
 
 
 def test_planar_short_runs_scale_the_planar_kernels_options():
-    from splatk.kernels.planar import make_planar_kernel
+    from splatk.kernels import make_kernel
 
     cfg, notes = fit_config_for({"kernel": "learned", "primitive": "planar"}, {"iters": 3000})
     assert cfg.kernel_options == {"freeze_iters": 200, "z_lr": pytest.approx(1e-3), "net_lr_mult": 10.0}
     assert notes["scaled_schedules"]["z_lr"] == pytest.approx(1e-3)
-    kernel = make_planar_kernel(cfg.kernel, **cfg.kernel_options)  # every option is the planar kernel's
+    kernel = make_kernel(cfg.kernel, "planar", **cfg.kernel_options)  # every option is the planar kernel's
     assert kernel.learning_rates() == {"z": pytest.approx(1e-3)} and kernel.freeze_iters == 200
 
 

@@ -9,9 +9,9 @@ import tracemalloc
 import pytest
 from click.testing import CliRunner
 
-from splatk.models import image2d_io
-from splatk.models.image2d import KERNELS
-from splatk.models.image2d_io import HEADER_BYTES, MAGIC, MAX_GRID, MAX_PIXELS, VERSION, payload_bytes
+from splatk.image import file as image_file
+from splatk.image.kernels import KERNELS
+from splatk.image.file import HEADER_BYTES, MAGIC, MAX_GRID, MAX_PIXELS, VERSION, payload_bytes
 from splatk_cli.main import cli
 
 HEADER = struct.Struct("<6sBBIHHBBH")  # the file format's header, as its docstring states it
@@ -49,7 +49,7 @@ def test_crafted_header_is_one_line_error_before_allocating(tmp_path, monkeypatc
     def no_model(*args, **kwargs):
         raise AssertionError("a model was allocated from an unchecked header")
 
-    monkeypatch.setattr(image2d_io, "Splats2D", no_model)
+    monkeypatch.setattr(image_file, "Splats2D", no_model)
     tracemalloc.start()
     t0 = time.perf_counter()
     try:
@@ -73,5 +73,5 @@ def test_valid_header_and_length_still_load(tmp_path):
     n = 3
     path = tmp_path / "ok.bin"
     path.write_bytes(header("gabor", n=n, height=5, width=7) + bytes(payload_bytes("gabor", n, 0, 0)))
-    model = image2d_io.load_splats2d(path)
+    model = image_file.load_splats2d(path)
     assert (model.kernel, model.n, model.height, model.width) == ("gabor", n, 5, 7)

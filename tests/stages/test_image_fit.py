@@ -12,10 +12,11 @@ from click.testing import CliRunner
 
 from splatk.functional.planar import bilinear
 from splatk.errors import InputError
-from splatk.models.image2d import (KERNELS, LATENT_DIM, SHARED_BYTES_PER_FLOAT, SHARED_DTYPE, PlanarDecoder,
-                                   Splats2D, bytes_per_primitive, decoder_floats, floats_per_primitive, kmeans,
-                                   num_primitives)
-from splatk.stages.image_fit import ImageFitConfig, fit_image
+from splatk.image.bytes import (SHARED_BYTES_PER_FLOAT, SHARED_DTYPE, bytes_per_primitive, floats_per_primitive,
+                                num_primitives)
+from splatk.image.fit import ImageFitConfig, fit_image
+from splatk.image.kernels import KERNELS, LATENT_DIM, PlanarDecoder, decoder_floats
+from splatk.image.model import Splats2D, kmeans
 from tests.scenes import synthetic_photo as _synthetic
 
 

@@ -10,8 +10,8 @@ import torch
 from click.testing import CliRunner
 
 from splatk.errors import InputError
-from splatk.models.image2d_io import HEADER_BYTES, encode_splats2d, load_splats2d, save_splats2d
-from splatk.stages.image_fit import ImageFitConfig, fit_image
+from splatk.image.file import HEADER_BYTES, encode_splats2d, load_splats2d, save_splats2d
+from splatk.image.fit import ImageFitConfig, fit_image
 from tests.scenes import synthetic_photo as _synthetic
 
 
@@ -39,7 +39,7 @@ def test_file_is_the_paid_bytes_and_redraws_the_same_image(tmp_path, kernel, sha
 
 
 def test_unrounded_decoder_is_refused():
-    from splatk.models.image2d import Splats2D
+    from splatk.image.model import Splats2D
 
     m = Splats2D("learned", 4, 8, 8, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():

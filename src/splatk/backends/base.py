@@ -97,7 +97,7 @@ class Backend:
         ``radii2``, [M, P], or None."""
         return None
 
-    #: the sum of 2D image splats (:class:`splatk.models.image2d.Splats2D`, whose torch path is
+    #: the sum of 2D image splats (:class:`splatk.image.model.Splats2D`, whose torch path is
     #: the specification): ``(means [N, 2], chol [N, 3], colors [N, 3], extras [N, E], bbox
     #: int32 [N, 4], kind, aux, width, height) -> [H, W, 3]``; None where a backend has no
     #: version of its own (the model's torch path draws; see ``backends.image_cpu``)

@@ -32,9 +32,10 @@ from torch.autograd.function import once_differentiable
 from .types import PROFILE_KINDS, Profile, RasterOutput
 
 _CSRC = Path(__file__).with_name("csrc")
-_SOURCES = ("rasterize_cpu.cpp", "raster_kernels.cpp", "raster_kernels_f64.cpp", "fused_ops.cpp",
-            "planar_raster.cpp", "image_splat.cpp")
-_HEADERS = ("raster_kernels.h", "raster_impl.h", "simd.h", "bf16_mlp.h")
+_SOURCES = ("rasterize_cpu.cpp", "raster_kernels.cpp", "raster_kernels_f64.cpp", "ssim_ops.cpp",
+            "project_ops.cpp", "sh_ops.cpp", "learned_ops.cpp", "planar_raster.cpp", "image_splat.cpp")
+_HEADERS = ("raster_kernels.h", "raster_impl.h", "raster_common.h", "raster_binning.h", "raster_forward.h",
+            "raster_backward.h", "fused_common.h", "simd.h", "bf16_mlp.h")
 _KIND_CODES = {"gaussian": 0, "beta": 1, "student_t": 2, "table": 3}
 assert set(_KIND_CODES) == set(PROFILE_KINDS)
 

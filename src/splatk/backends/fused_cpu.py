@@ -3,8 +3,8 @@
 With the native rasteriser, a training iteration at 50k primitives on 400x400 spent 75% of its
 time in torch ops: the separable SSIM convolutions (~75 ms forward+backward), the EWA projection
 (~35 ms) and SH colour (~20 ms), each dozens of small kernels and autograd nodes. The C++ in
-``csrc/fused_ops.cpp`` computes each in one pass with a hand-written backward. The torch
-versions (``metrics/ssim.py``, ``functional/projection.py``, ``functional/sh.py``) stay the
+``csrc/`` (``ssim_ops.cpp``, ``project_ops.cpp``, ``sh_ops.cpp``) computes each in one pass with a
+hand-written backward. The torch versions (``metrics/ssim.py``, ``functional/projection.py``, ``functional/sh.py``) stay the
 specification; ``tests/backends/test_fused_ops.py`` checks these against them.
 
 :class:`splatk.backends.cpu_backend.CpuBackend` is where they are used: ``--backend cpu`` / ``auto``

@@ -1,10 +1,10 @@
 """Native CPU renderer for 2D image splats (``csrc/image_splat.cpp``), used by `splatk image`.
 
-Renders the plain sum ``I(x) = sum_i c_i k_i(u, v)`` of :class:`splatk.models.image2d.Splats2D`
+Renders the plain sum ``I(x) = sum_i c_i k_i(u, v)`` of :class:`splatk.image.model.Splats2D`
 from its transformed parameters (pixel means, Cholesky factors, colours, the kernel's per-splat
 values) and each splat's pixel box, with the torch path's semantics; gradients flow back to
 those four tensors, and from there through autograd to the raw parameters. The torch path of
-``Splats2D.render`` is the reference it is tested against (tests/models/test_image2d_native.py).
+``Splats2D.render`` is the reference it is tested against (tests/backends/test_image_cpu.py).
 """
 from __future__ import annotations
 

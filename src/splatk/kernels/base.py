@@ -1,5 +1,8 @@
-"""What a splatting kernel is: a name, its support, its per-primitive parameters, and how it
-turns a view of the primitives into the radial profile the rasteriser composites."""
+"""What a splatting kernel is: a primitive type and a name, its support, its per-primitive
+parameters, and how it turns a view of the primitives into the profile the rasteriser composites.
+
+Kernels are registered by (primitive, name): ``("volumetric", "beta")``, ``("planar", "learned")``.
+:func:`make_kernel` builds one, :func:`kernel_names` lists those of a primitive type."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,6 +11,7 @@ import torch
 from torch import nn
 
 from ..backends import Backend, Profile
+from ..errors import InputError
 
 
 @dataclass
@@ -32,7 +36,8 @@ class ViewContext:
 
 
 class Kernel(nn.Module):
-    """Base class. Subclasses set ``name`` and ``support_sigmas`` and override the hooks.
+    """Base class. Subclasses set ``name`` and ``support_sigmas`` (and ``primitive`` for another
+    primitive type than volumetric) and override the hooks.
 
     A kernel's ``nn.Module`` parameters are its *global* networks (the learned kernel's
     Phi_proj / Phi_dec); per-primitive parameters live in the model's parameter dict under
@@ -40,6 +45,9 @@ class Kernel(nn.Module):
     """
 
     name: str = "base"
+    #: the primitive type the kernel draws (a volumetric kernel returns a
+    #: :class:`~splatk.backends.Profile`, a planar one a :class:`~splatk.backends.PlanarProfile`)
+    primitive: str = "volumetric"
     #: support of the profile in units of the projected sigma (bounding ellipse at r = 1)
     support_sigmas: float = 3.0
     #: whether :meth:`profile` reads the :class:`ViewContext` (a backend's projection may skip
@@ -71,7 +79,6 @@ class Kernel(nn.Module):
 def read_weights_file(path, fmt: str, what: str, remake: str) -> dict:
     """The dict a `splatk pretrain` weights file holds, checked to be of format ``fmt``; bad files
     raise an InputError naming the file (``what``: the kind of file, ``remake``: the command)."""
-    from ..errors import InputError
     from ..torch_files import load_torch_file
 
     try:
@@ -85,9 +92,41 @@ def read_weights_file(path, fmt: str, what: str, remake: str) -> dict:
     return obj
 
 
-KERNELS: dict[str, type[Kernel]] = {}
+#: (primitive, name) -> kernel class
+KERNELS: dict[tuple[str, str], type[Kernel]] = {}
 
 
 def register_kernel(cls: type[Kernel]) -> type[Kernel]:
-    KERNELS[cls.name] = cls
+    """Class decorator: register ``cls`` under ``(cls.primitive, cls.name)``."""
+    KERNELS[(cls.primitive, cls.name)] = cls
     return cls
+
+
+def kernel_names(primitive: str | None = None) -> list[str]:
+    """Sorted names of the kernels of ``primitive`` (None: of every primitive type)."""
+    return sorted({name for p, name in KERNELS if primitive is None or p == primitive})
+
+
+def make_kernel(name: str, primitive: str = "volumetric", **options) -> Kernel:
+    """The kernel ``name`` of ``primitive`` built with ``options``.
+
+    An unknown volumetric kernel is a ValueError; a kernel with no version for another primitive
+    type, or an option that kernel does not take (a volumetric-only one such as ``k``), is an
+    InputError saying which kernels that primitive type has.
+    """
+    cls = KERNELS.get((primitive, name))
+    names = kernel_names(primitive)
+    if cls is None and primitive == "volumetric":
+        raise ValueError(f"unknown kernel {name!r}; choose from {', '.join(names)}")
+    if cls is None:
+        if not names:
+            raise ValueError(f"unknown primitive type {primitive!r}")
+        raise InputError(None, f"kernel {name!r} has no {primitive} version",
+                         f"with --primitive {primitive} use --kernel {' or '.join(names)}")
+    if primitive == "volumetric":
+        return cls(**options)
+    try:
+        return cls(**options)
+    except TypeError as e:  # an option of a volumetric kernel (e.g. k)
+        raise InputError(None, f"{primitive} kernel {name!r}: {e}",
+                         "drop volumetric-only kernel options such as --k") from None

@@ -11,23 +11,36 @@ symmetric) kernel over the disk's local coordinates::
 
 (u, v) in [-1, 1]^2 spans the disk's 3-sigma square; the support is the unit disk. The output
 keeps the paper's sigmoid: in 3D the kernel is an opacity that is alpha-composited, so it must
-lie in [0, 1] (the signed output of :mod:`splatk.models.image2d` is for summed images only).
+lie in [0, 1] (the signed output of :mod:`splatk.image.kernels` is for summed images only).
 
 Rasterisers do not call the decoder per pixel: :meth:`LearnedPlanarKernel.table` samples it on
 a ``G x G`` grid of nodes per primitive and view, and pixels interpolate bilinearly
 (:func:`splatk.functional.planar.bilinear`); :meth:`LearnedPlanarKernel.exact` is the reference.
 Pretraining (Gaussian surfel target, paper Sec. 4.5) is in :mod:`splatk.stages.pretrain_planar`.
+
+:class:`SurfelLearnedKernel` is the kernel a planar model draws with (registered as
+``("planar", "learned")``): the network plus per-primitive latents, schedules and weights.
 """
 from __future__ import annotations
+
+import math
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..backends import PlanarProfile
 from ..functional.planar import SURFEL_SUPPORT_SIGMAS, bilinear, gaussian_surfel
+from .base import read_weights_file, register_kernel
 from .learned import LEAKY_SLOPE, LOG_ANGLE_SCALE, LOG_ANGLE_SHIFT, LOG_DIST_SCALE, _he_init, _mlp
+from .planar import PlanarKernel
 
 SUPPORT_SIGMAS = SURFEL_SUPPORT_SIGMAS
+#: weights made by ``splatk pretrain --kind planar --steps 10000 --out src/splatk/assets/learned_planar.pt``
+#: (Gaussian-surfel target; mean abs error 0.015, see learned_planar.json; 1500 steps gave 0.09)
+DEFAULT_PLANAR_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "learned_planar.pt"
+PLANAR_WEIGHTS_FORMAT = "splatk-learned-planar-kernel"  # stages.pretrain_planar.WEIGHTS_FORMAT
 
 
 class LearnedPlanarKernel(nn.Module):
@@ -111,4 +124,85 @@ class LearnedPlanarKernel(nn.Module):
         return bilinear(table, idx, uv) * ((uv * uv).sum(-1) <= 1.0)
 
 
-__all__ = ["LearnedPlanarKernel", "gaussian_surfel", "SUPPORT_SIGMAS", "_he_init"]
+@register_kernel
+class SurfelLearnedKernel(PlanarKernel):
+    """The learned planar kernel as a planar-model kernel.
+
+    Args:
+        grid: table nodes per axis per primitive and view (8; 64 samples of Phi_dec_planar).
+        latent_dim, latent2d_dim, proj_width, dec_width: network shapes (10, 10, 64, 8; a weights
+            file must match them).
+        freeze_iters: networks frozen for this many iterations (as the volumetric learned kernel).
+        net_lr, net_lr_final: exponential decay of the networks' LR after the freeze.
+        net_lr_mult: multiplies the network LR; None = 10 without pretrained weights, else 1
+            (the volumetric kernel's rule, paper Sec. 5.4).
+        z_lr: Adam LR of the per-primitive latents (the volumetric z3d default).
+        weights: "default" (the shipped file when it exists, else He init), a path from
+            `splatk pretrain --kind planar`, or "none" (He init).
+    """
+
+    name = "learned"
+    needs_view = True
+
+    def __init__(self, grid: int = 8, latent_dim: int = 10, latent2d_dim: int = 10,
+                 proj_width: int = 64, dec_width: int = 8, freeze_iters: int = 2000,
+                 net_lr: float = 1.6e-4, net_lr_final: float = 1.6e-6,
+                 net_lr_mult: float | None = None, z_lr: float = 1e-4,
+                 weights: str | None = "default"):
+        super().__init__()
+        self.net = LearnedPlanarKernel(latent_dim, latent2d_dim, proj_width, dec_width, grid)
+        self.freeze_iters = int(freeze_iters)
+        self.net_lr, self.net_lr_final = float(net_lr), float(net_lr_final)
+        self.z_lr = float(z_lr)
+        w = "none" if weights is None else str(weights)
+        if w == "default" and not DEFAULT_PLANAR_WEIGHTS.is_file():
+            w = "none"  # nothing shipped: He init, recorded as such
+        self.weights = w
+        if w != "none":
+            self.load_pretrained(DEFAULT_PLANAR_WEIGHTS if w == "default" else Path(w).expanduser())
+        self.net_lr_mult = float(net_lr_mult) if net_lr_mult is not None else (1.0 if w != "none" else 10.0)
+        self._arch = dict(grid=int(grid), latent_dim=int(latent_dim), latent2d_dim=int(latent2d_dim),
+                          proj_width=int(proj_width), dec_width=int(dec_width))
+
+    @property
+    def options(self) -> dict:
+        return {**self._arch, "freeze_iters": self.freeze_iters, "net_lr": self.net_lr,
+                "net_lr_final": self.net_lr_final, "net_lr_mult": self.net_lr_mult,
+                "z_lr": self.z_lr, "weights": self.weights}
+
+    def load_pretrained(self, path: Path) -> None:
+        from ..errors import InputError
+
+        if not path.is_file():
+            raise InputError(path, "planar learned-kernel weights file not found",
+                             "make it with `splatk pretrain --kind planar` or pass weights: none")
+        obj = read_weights_file(path, PLANAR_WEIGHTS_FORMAT, "planar learned-kernel",
+                                "splatk pretrain --kind planar")
+        try:
+            self.net.load_state_dict(obj["state_dict"])
+        except RuntimeError as e:
+            raise InputError(path, "weights are for another network shape",
+                             "pretrain with the same kernel options or pass weights: none") from e
+
+    def init_primitive_params(self, n, device):
+        return {"z": torch.zeros(n, self.net.latent_dim, device=device)}  # paper Sec. 4.5
+
+    def learning_rates(self):
+        return {"z": self.z_lr}
+
+    def network_learning_rate(self, it: int, progress: float) -> float:
+        """0 during the freeze, then net_lr -> net_lr_final exponentially over the remaining
+        progress (the schedule of :meth:`splatk.kernels.learned.LearnedKernel.network_learning_rate`)."""
+        if it <= self.freeze_iters or self.net_lr <= 0:
+            return 0.0
+        p0 = progress * self.freeze_iters / max(it, 1)
+        q = 1.0 if p0 >= 1.0 else min(1.0, max(0.0, (progress - p0) / (1.0 - p0)))
+        lo = max(self.net_lr_final, 1e-30)
+        return math.exp((1.0 - q) * math.log(self.net_lr) + q * math.log(lo)) * self.net_lr_mult
+
+    def profile(self, prims, view):
+        z_after = self.net.project(prims["z"], view.means_cam, view.scales, view.rotmats_cam)
+        return PlanarProfile("grid", self.net.table(z_after))
+
+
+__all__ = ["LearnedPlanarKernel", "SurfelLearnedKernel", "gaussian_surfel", "SUPPORT_SIGMAS", "_he_init"]

@@ -70,13 +70,11 @@ def build_model(spec: dict, prims: dict, kernel_state: dict | None = None) -> Sp
     color = make_color_model(spec["color"], **spec.get("color_options", {}))
     primitive = spec.get("primitive", "volumetric")  # files from before planar models: volumetric
     if primitive == "planar":
-        from ..kernels.planar import make_planar_kernel
-
         options = dict(spec.get("kernel_options", {}))
         if kernel_state and spec["kernel"] == "learned":
             # the saved networks are loaded below: do not read a weights file that may be gone
             options["weights"] = "none"
-        model = PlanarModel(make_planar_kernel(spec["kernel"], **options), color, prims)
+        model = PlanarModel(make_kernel(spec["kernel"], "planar", **options), color, prims)
     elif primitive == "volumetric":
         model = SplatModel(make_kernel(spec["kernel"], **spec.get("kernel_options", {})), color, prims)
     else:

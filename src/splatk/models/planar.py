@@ -3,7 +3,7 @@
 Same interface as :class:`splatk.models.volumetric.SplatModel` (the trainer, MCMC, save/load and
 eval treat both alike); the differences are two scales per primitive (the disk's in-plane
 sigmas, ``log_scales`` [N, 2]), the rasteriser (the backend's ``rasterize_planar``)
-and the kernels (:mod:`splatk.kernels.planar`).
+and the kernels (registered as ``("planar", name)``, :mod:`splatk.kernels.planar`).
 """
 from __future__ import annotations
 
@@ -14,8 +14,7 @@ from ..backends import Backend
 from ..colors import ColorModel, make_color_model
 from ..functional.planar import planar_in_front
 from ..functional.projection import quats_to_rotmats
-from ..kernels import ViewContext
-from ..kernels.planar import PlanarKernel, make_planar_kernel
+from ..kernels import Kernel, ViewContext, make_kernel
 from .base import PrimitiveModel
 from .volumetric import RenderResult, knn_mean_sq_dist
 
@@ -35,7 +34,7 @@ class PlanarModel(PrimitiveModel):
         cls,
         points: torch.Tensor,
         colors: torch.Tensor,
-        kernel: PlanarKernel | str = "gaussian",
+        kernel: Kernel | str = "gaussian",
         color: ColorModel | str = "sh",
         init_opacity: float = 0.5,
         scale_factor: float = 1.0,
@@ -46,7 +45,7 @@ class PlanarModel(PrimitiveModel):
         rotations: random (from torch's global RNG), as 2DGS does, since identity rotations
         would turn every disk edge-on to views along the world x and y axes."""
         if isinstance(kernel, str):
-            kernel = make_planar_kernel(kernel, **(kernel_options or {}))
+            kernel = make_kernel(kernel, "planar", **(kernel_options or {}))
         if isinstance(color, str):
             color = make_color_model(color, **(color_options or {}))
         n = points.shape[0]

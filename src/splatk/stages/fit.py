@@ -26,7 +26,7 @@ from ..data import load_scene
 from ..errors import InputError, TrainingStalled
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
-from ..kernels import KERNELS
+from ..kernels import KERNELS, make_kernel
 from ..models.init import initial_points
 from ..models.io import atomic_torch_save, model_spec, save_model
 from ..models.planar import PlanarModel
@@ -92,7 +92,7 @@ SCALES_LR_MULT_MAX = 10.0
 #: ... and the learned kernel's latent and network LRs by 30k / iters, at most this much
 KERNEL_LR_MULT_MAX = 10.0
 #: the learned kernels' latent: (option name, default LR) per primitive type
-#: (kernels/learned.py z3d_lr, kernels/planar.py z_lr)
+#: (kernels/learned.py z3d_lr, kernels/learned_planar.py z_lr)
 LEARNED_LATENT_LR = {"volumetric": ("z3d_lr", 1e-4), "planar": ("z_lr", 1e-4)}
 
 
@@ -171,11 +171,9 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
         raise InputError(None, f"unknown primitive type {cfg.primitive!r}",
                          f"use --primitive {' or '.join(PRIMITIVES)}")
     if cfg.primitive == "planar":
-        from ..kernels.planar import make_planar_kernel
-
         # checked before the points are made: an unknown (primitive, kernel) pair is an input
         # error with a message, not a traceback
-        make_planar_kernel(cfg.kernel, **cfg.kernel_options)
+        make_kernel(cfg.kernel, "planar", **cfg.kernel_options)
     budget = cfg.train.budget if budget is None else budget
     if cfg.train.init == "auto":  # recorded resolved, so config.yaml says what ran
         cfg.train.init = "sfm" if scene.points.shape[0] > 0 else "random"
@@ -195,8 +193,7 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
     if cfg.train.init_scale > 0:
         scale_factor = cfg.train.init_scale
     elif cfg.train.init == "random":
-        support = (GAUSSIAN_SUPPORT_SIGMAS if cfg.primitive == "planar" else
-                   getattr(KERNELS.get(cfg.kernel), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS))
+        support = getattr(KERNELS.get((cfg.primitive, cfg.kernel)), "support_sigmas", GAUSSIAN_SUPPORT_SIGMAS)
         scale_factor = 0.1 * GAUSSIAN_SUPPORT_SIGMAS / support
     else:
         scale_factor = 1.0

@@ -337,8 +337,7 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
     this machine's memory holds."""
     from ..backends import backend_names
     from ..colors import make_color_model
-    from ..kernels import KERNELS, make_kernel
-    from ..kernels.planar import PLANAR_KERNELS, make_planar_kernel
+    from ..kernels import kernel_names, make_kernel
 
     if isinstance(sources, str):
         sources = {name: sources for _, name, _ in RULES} | {
@@ -362,16 +361,16 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
             and all(valid(c, float_range(0.0, 1.0)) for c in cfg.background)):
         raise option_error("background", cfg.background, "must be three numbers from 0 to 1",
                             "e.g. background: [1, 1, 1]", sources.get("background"))
-    kernels = PLANAR_KERNELS if cfg.primitive == "planar" else KERNELS
+    kernels = kernel_names(cfg.primitive)
     if not isinstance(cfg.kernel, str):
-        raise option_error("kernel", cfg.kernel, "must be a kernel name", f"use one of {', '.join(sorted(KERNELS))}",
-                           sources.get("kernel"))
-    if cfg.primitive == "planar" and cfg.kernel in KERNELS and cfg.kernel not in PLANAR_KERNELS:
-        raise InputError(None, f"kernel {cfg.kernel!r} has no planar version",
-                         f"use --kernel {' or '.join(sorted(PLANAR_KERNELS))}, or --primitive volumetric")
+        raise option_error("kernel", cfg.kernel, "must be a kernel name",
+                           f"use one of {', '.join(kernel_names('volumetric'))}", sources.get("kernel"))
+    if cfg.kernel not in kernels and cfg.kernel in kernel_names("volumetric"):
+        raise InputError(None, f"kernel {cfg.kernel!r} has no {cfg.primitive} version",
+                         f"use --kernel {' or '.join(kernels)}, or --primitive volumetric")
     if cfg.kernel not in kernels:
         raise option_error("kernel", cfg.kernel, f"is not a {cfg.primitive} kernel",
-                           f"use one of {', '.join(sorted(kernels))}", sources.get("kernel"))
+                           f"use one of {', '.join(kernels)}", sources.get("kernel"))
     if not isinstance(cfg.kernel_options, dict):
         raise option_error("kernel_options", cfg.kernel_options, "must be a mapping", "e.g. kernel_options: {k: 4}",
                             sources.get("kernel_options"))
@@ -379,10 +378,7 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
     if "weights" in options:
         options["weights"] = "none"  # the file is read (and checked) when the model is built
     try:
-        if cfg.primitive == "planar":
-            make_planar_kernel(cfg.kernel, **options)
-        else:
-            make_kernel(cfg.kernel, **options)
+        make_kernel(cfg.kernel, cfg.primitive, **options)
         make_color_model(cfg.color, **color_options(cfg))
     except (ValueError, TypeError) as e:
         raise InputError(None, f"kernel {cfg.kernel!r} options {cfg.kernel_options}: {e}",

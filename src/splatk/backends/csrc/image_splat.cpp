@@ -1,5 +1,5 @@
 // Native CPU renderer for 2D image splats (`splatk image`): the ``cpu`` path of
-// splatk/models/image2d.py. Semantics are those of ``Splats2D.render`` on the torch path (the
+// splatk/image/model.py. Semantics are those of ``Splats2D.render`` on the torch path (the
 // specification), for the transformed parameters it packs:
 //
 //   * the image is the plain sum I(x) = sum_i c_i k_i(u, v) (GaussianImage, no compositing);

@@ -160,9 +160,12 @@ std::vector<at::Tensor> rasterize_backward(const std::vector<at::Tensor>& state,
 
 }  // namespace
 
-void register_fused_ops(pybind11::module_& m);   // fused_ops.cpp
-void register_planar_ops(pybind11::module_& m);  // planar_raster.cpp
-void register_image_ops(pybind11::module_& m);   // image_splat.cpp
+void register_ssim_ops(pybind11::module_& m);     // ssim_ops.cpp
+void register_project_ops(pybind11::module_& m);  // project_ops.cpp
+void register_sh_ops(pybind11::module_& m);       // sh_ops.cpp
+void register_learned_ops(pybind11::module_& m);  // learned_ops.cpp
+void register_planar_ops(pybind11::module_& m);   // planar_raster.cpp
+void register_image_ops(pybind11::module_& m);    // image_splat.cpp
 
 }  // namespace splatk
 
@@ -185,7 +188,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("set_cpu_clock", &splatk::set_cpu_clock,
         "time phases with the calling thread's CPU clock instead of wall time");
   m.def("simd_width", &splatk::simd_width, "vector width the kernels were compiled for (bits)");
-  splatk::register_fused_ops(m);
+  splatk::register_ssim_ops(m);
+  splatk::register_project_ops(m);
+  splatk::register_sh_ops(m);
+  splatk::register_learned_ops(m);
   splatk::register_planar_ops(m);
   splatk::register_image_ops(m);
 }

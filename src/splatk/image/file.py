@@ -24,9 +24,10 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .image2d import (GABOR_WAVES, KERNELS, MAX_SHAPES, SHARED_DTYPE, TURN_STEPS, Splats2D, bytes_per_primitive,
-                      network_bytes)
-from .io import atomic_write
+from ..models.io import atomic_write
+from .bytes import MAX_SHAPES, SHARED_DTYPE, bytes_per_primitive, network_bytes
+from .kernels import GABOR_WAVES, KERNELS, TURN_STEPS
+from .model import Splats2D
 
 MAGIC = b"SPLK2D"
 VERSION = 1

@@ -1,4 +1,4 @@
-"""2D splats that represent one image: Gaussian, Gabor and learned planar kernels.
+"""2D splats that represent one image (:class:`Splats2D`): Gaussian, Gabor and learned planar kernels.
 
 All three share the geometry of GaussianImage (Zhang et al. 2024; peers.md Sec. 7.1): a mean
 ``xy`` (``tanh`` of a raw value, so [-1, 1] maps to the image), a lower-triangular Cholesky
@@ -10,17 +10,9 @@ RGB colour. The image is the plain sum (no alpha compositing)::
 where ``(u, v) = L^-1 (x - mu) / 3`` are the splat's local coordinates: the 3-sigma ellipse is
 the unit disk, which is also each kernel's support (3 sigma, as GaussianImage).
 
-Kernels k(u, v) (``E(u, v) = exp(-4.5 (u^2 + v^2))`` is the Gaussian envelope):
+The kernels k(u, v) (gaussian, gabor, learned) are in :mod:`splatk.image.kernels`. The learned one
+may also be stored with a shape palette:
 
-* ``gaussian``: ``E``.                                                 8 floats / primitive
-* ``gabor``:    ``E * prod_{d in u, v} sum_k a_{k,d} cos(pi f_{k,d} d)``, K = 2 waves per axis
-  with learned amplitudes and frequencies (Gabor splatting, peers.md Sec. 7.3, which picks
-  frequencies from a bank; here they are continuous parameters).     8 + 8 = 16 floats
-* ``learned``:  ``E * Phi_dec_planar(u, v, z)`` with a per-primitive latent ``z`` (L values,
-  default 2, ``latent_dim``; the paper's 10 buys fewer primitives than it is worth here) and one global decoder (paper Eq. 9; 3 linear layers, 8 wide, leaky
-  ReLU). For an image there is no camera, so Phi_proj is the identity (``z_after = z``).
-  ``latent_dim = 0`` leaves one learned shape shared by every splat (the Gaussian's bytes).
-                                                                 8 + L floats + 1 byte
 * ``learned`` with a shape palette (``shapes = K``, 1 to 256): the same kernel, but what is
   stored is K shared latents (the palette) and one byte per splat naming its shape. Training
   keeps a free latent per splat for its first part, then k-means them into K palette entries
@@ -57,7 +49,7 @@ Rendering (``backend``): ``torch`` lists every (splat, pixel) pair inside the sp
 bbox (integers, no grad), evaluates the kernel on the pairs and sums the colours with
 ``index_add``, in chunks so the pairs in flight stay bounded; it is the reference, runs on any
 device and also serves the ``exact`` learned mode. ``cpu`` hands the same boxes and transformed
-parameters to the native op (the backend's ``render_image_splats``, :mod:`splatk.backends.image_cpu`,
+parameters to the native op (the backend's ``render_image_splats``, ``backends/image_cpu.py``,
 OpenMP, same image and gradients, several times faster); ``auto`` picks ``cpu`` when it builds and
 the splats are on the CPU.
 """
@@ -66,88 +58,18 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import backends
 from ..backends import Backend
-from ..functional.planar import bilinear
+from .bytes import SHARED_DTYPE, bytes_per_primitive, check_shapes, network_bytes
+from .kernels import LATENT_DIM, SUPPORT_SIGMAS, TURN_STEPS, image_kernel
 
-KERNELS = ("gaussian", "gabor", "learned")
 BACKENDS = ("auto", "torch", "cpu")
-#: support in sigmas (GaussianImage uses 3)
-SUPPORT_SIGMAS = 3.0
-LEAKY_SLOPE = 0.01
-#: per-primitive latent floats of the learned kernel. Measured (kodim05 + kodim23, downscale 4,
-#: 24 KiB, 200 iterations; benchmarks/results/image_latent_sweep.json): mean PSNR 23.89 dB at 10,
-#: 25.10 at 4, 25.45 at 2, 25.73 at 1, 26.10 at 0 (gaussian 26.10): at equal bytes each latent
-#: float costs primitives and pays back less. At 1000 iterations: 28.50 at 2, 28.45 at 1, 28.80
-#: at 0 (gaussian 28.67). 2 is the best size that keeps a per-primitive shape; 0 shares one.
-LATENT_DIM = 2
-#: largest shape palette: its index is one byte per splat
-MAX_SHAPES = 256
-#: steps of a learned splat's turn over 2 pi: one byte
-TURN_STEPS = 256
-#: storage of the learned kernel's shared decoder and palette. Per-splat values stay float32 for
-#: every kernel (equal terms); the shared part is a fixed cost that weighs most at small budgets
-#: (at float32 the decoder and a 64-shape palette took 996 bytes, 12% of 8 KiB), and float16
-#: keeps it to half. The fit rounds them at its end (:meth:`Splats2D.round_shared`), so the
-#: image measured is the image stored.
-SHARED_DTYPE = torch.float16
-SHARED_BYTES_PER_FLOAT = torch.finfo(SHARED_DTYPE).bits // 8
-DEC_WIDTH = 8
-GABOR_WAVES = 2
 #: largest bbox half-size in pixels (bounds the pairs of a huge splat; its tail is cut there)
 MAX_RADIUS = 64
 #: (splat, pixel) pairs evaluated at once
 CHUNK_PAIRS = 2_000_000
-
-
-def _check_shapes(shapes: int) -> None:
-    if not 0 <= shapes <= MAX_SHAPES:
-        raise ValueError(f"shapes must be 0 (a latent per splat) or 1 to {MAX_SHAPES} "
-                         f"(a palette indexed by one byte), got {shapes}")
-
-
-def floats_per_primitive(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
-    """Every per-primitive float: xy 2 + Cholesky 3 + colour 3 + the kernel's own (a learned
-    kernel with a shape palette stores no latent per splat, only a byte: see bytes_per_primitive)."""
-    extra = {"gaussian": 0, "gabor": 4 * GABOR_WAVES, "learned": 0 if shapes else latent_dim}
-    if kernel not in extra:
-        raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
-    return 8 + extra[kernel]
-
-
-def bytes_per_primitive(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
-    """float32 parameters, plus a learned kernel's one-byte turn and, with ``shapes``, its
-    one-byte palette index."""
-    _check_shapes(shapes)
-    floats = 4 * floats_per_primitive(kernel, latent_dim, shapes)
-    if kernel != "learned":
-        return floats
-    return floats + 1 + (1 if shapes else 0)  # the turn, and the palette index
-
-
-def decoder_floats(latent_dim: int = LATENT_DIM) -> int:
-    """Floats of the shared Phi_dec_planar (paid once, out of the same byte budget)."""
-    i, w = 2 + latent_dim, DEC_WIDTH
-    return (i * w + w) + (w * w + w) + (w + 1)
-
-
-def network_bytes(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
-    """Bytes of what every splat shares, stored at float16 (:data:`SHARED_DTYPE`): the learned
-    decoder and, with a shape palette, its ``shapes`` x ``latent_dim`` latents (0 for the other
-    kernels)."""
-    if kernel != "learned":
-        return 0
-    return SHARED_BYTES_PER_FLOAT * (decoder_floats(latent_dim) + shapes * latent_dim)
-
-
-def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
-    """Primitives that fit in ``budget_bytes`` once the shared network is paid for (``splatk
-    bench``'s rule too: budget = (budget_bytes - network_bytes) // bytes_per_primitive)."""
-    spare = int(budget_bytes) - network_bytes(kernel, latent_dim, shapes)
-    return max(0, spare) // bytes_per_primitive(kernel, latent_dim, shapes)
 
 
 def kmeans(points: Tensor, k: int, generator: torch.Generator | None = None, steps: int = 50) -> tuple[Tensor, Tensor]:
@@ -177,28 +99,6 @@ def kmeans(points: Tensor, k: int, generator: torch.Generator | None = None, ste
     return centres, labels
 
 
-class PlanarDecoder(nn.Module):
-    """Phi_dec_planar(u, v, z) (paper Eq. 9): [2 + L] -> 8 -> 8 -> 1, leaky ReLU, signed output."""
-
-    def __init__(self, latent_dim: int = LATENT_DIM, width: int = DEC_WIDTH):
-        super().__init__()
-        self.l1 = nn.Linear(2 + latent_dim, width)
-        self.l2 = nn.Linear(width, width)
-        self.l3 = nn.Linear(width, 1)
-        for lin in (self.l1, self.l2):
-            nn.init.kaiming_normal_(lin.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
-            nn.init.zeros_(lin.bias)
-        nn.init.zeros_(self.l3.weight)  # starts as the constant 1: the kernel is the Gaussian
-        nn.init.ones_(self.l3.bias)
-
-    def forward(self, uv: Tensor, z: Tensor) -> Tensor:
-        """uv: [..., 2], z: [..., L] (broadcast) -> [...]. The z part of layer 1 is computed once."""
-        h = F.linear(z, self.l1.weight[:, 2:], self.l1.bias) + F.linear(uv, self.l1.weight[:, :2])
-        h = F.leaky_relu(h, LEAKY_SLOPE)
-        h = F.leaky_relu(self.l2(h), LEAKY_SLOPE)
-        return self.l3(h)[..., 0]
-
-
 class Splats2D(nn.Module):
     """N 2D splats of one kernel kind fitted to an H x W image.
 
@@ -221,8 +121,7 @@ class Splats2D(nn.Module):
         if backend not in BACKENDS:
             raise ValueError(f"unknown image backend {backend!r}; choose from {', '.join(BACKENDS)}")
         self.backend = backend
-        if kernel not in KERNELS:
-            raise ValueError(f"unknown 2D kernel {kernel!r}; choose from {', '.join(KERNELS)}")
+        self.kernel2d = image_kernel(kernel)
         if n < 1:
             raise ValueError(f"need at least one primitive, got {n}")
         self.kernel, self.n, self.height, self.width = kernel, int(n), int(height), int(width)
@@ -230,7 +129,7 @@ class Splats2D(nn.Module):
         if kernel == "learned" and latent_dim < 0:
             raise ValueError(f"latent_dim must be >= 0, got {latent_dim}")
         self.latent_dim = int(latent_dim)
-        _check_shapes(int(shapes))
+        check_shapes(int(shapes))
         self.shapes = int(shapes) if kernel == "learned" else 0
         # set by quantize_shapes: the palette [K, L] and each splat's entry in it
         self.palette: nn.Parameter | None = None
@@ -241,17 +140,8 @@ class Splats2D(nn.Module):
         s0 = 0.5 * math.sqrt(height * width / n)
         self.chol = nn.Parameter(torch.tensor([s0, 0.0, s0]).repeat(n, 1))  # l11, l21, l22 (px)
         self.colors = nn.Parameter(torch.rand(n, 3, generator=gen) * 0.1)
-        if kernel == "gabor":
-            amps = torch.zeros(n, 2, GABOR_WAVES)
-            amps[..., 0] = 1.0  # first wave at frequency 0: starts as a Gaussian
-            self.gabor_amps = nn.Parameter(amps)
-            freqs = torch.zeros(n, 2, GABOR_WAVES)
-            freqs[..., 1:] = 0.5 + 2.0 * torch.rand(n, 2, GABOR_WAVES - 1, generator=gen)
-            self.gabor_freqs = nn.Parameter(freqs)
-        if kernel == "learned":
-            self.latents = nn.Parameter(0.1 * torch.randn(n, latent_dim, generator=gen))
-            self.decoder = PlanarDecoder(latent_dim)
-            self.turn = nn.Parameter(torch.rand(n, generator=gen) * (2.0 * math.pi))
+        # gabor: gabor_amps, gabor_freqs; learned: latents, decoder, turn
+        self.kernel2d.init_params(self, n, latent_dim, gen)
 
     # ---- geometry -------------------------------------------------------------------------
     def means_px(self) -> Tensor:
@@ -324,9 +214,7 @@ class Splats2D(nn.Module):
 
     def _extras(self) -> Tensor:
         """[N, E] the kernel's own per-primitive values packed for one gather (E may be 0)."""
-        if self.kernel == "gabor":
-            return torch.cat([self.gabor_amps.reshape(self.n, -1), self.gabor_freqs.reshape(self.n, -1)], 1)
-        return self.chol.new_zeros(self.n, 0)
+        return self.kernel2d.extras(self)
 
     def kernel_values(self, uv: Tensor, idx: Tensor, table: Tensor | None = None,
                       extras: Tensor | None = None) -> Tensor:
@@ -334,21 +222,7 @@ class Splats2D(nn.Module):
 
         ``extras`` [P, E] are the gathered :meth:`_extras` rows (gathered here when None).
         """
-        r2 = (uv * uv).sum(-1)
-        env = torch.exp(-0.5 * SUPPORT_SIGMAS**2 * r2) * (r2 <= 1.0)
-        if self.kernel == "gaussian":
-            return env
-        if self.kernel == "gabor":
-            if extras is None:
-                extras = self._extras()[idx]
-            k = GABOR_WAVES
-            a = extras[:, :2 * k].reshape(-1, 2, k)
-            f = extras[:, 2 * k:].reshape(-1, 2, k)
-            waves = (a * torch.cos(math.pi * f * uv[:, :, None])).sum(-1)  # [P, 2]
-            return env * waves[:, 0] * waves[:, 1]
-        if self.exact or table is None:
-            return env * self.decoder(self.turned_uv(uv, self.turns()[idx]), self.splat_latents(idx))
-        return env * bilinear(table, idx, uv)
+        return self.kernel2d.values(self, uv, idx, table, extras)
 
     # ---- rendering ------------------------------------------------------------------------
     @torch.no_grad()
@@ -403,10 +277,7 @@ class Splats2D(nn.Module):
             x0, y0, rx, ry = self._boxes(means.detach(), l11.detach(), l21.detach(), l22.detach())
             bbox = torch.stack([x0, y0, x0 + 2 * rx + 1, y0 + 2 * ry + 1], 1).to(torch.int32).contiguous()
             chol = torch.stack([l11, l21, l22], 1)
-            if self.kernel == "learned":
-                kind, aux, extras = "table", self.grid, table.reshape(self.n, -1)
-            else:
-                kind, aux, extras = self.kernel, GABOR_WAVES if self.kernel == "gabor" else 0, self._extras()
+            kind, aux, extras = self.kernel2d.native(self, table)
             return backend.render_image_splats(means, chol, self.colors, extras, bbox, kind, aux,
                                                self.width, self.height)
         idx, px, py = self._pairs(means.detach(), l11.detach(), l21.detach(), l22.detach())
@@ -429,7 +300,7 @@ class Splats2D(nn.Module):
         """Honest storage: per-splat floats at float32 (and a byte per turn and palette index), the
         shared decoder and palette at float16. ``bytes`` is everything needed to redraw the image
         (the primitives and, for the learned kernel, the shared decoder and palette), and what
-        :func:`splatk.models.image2d_io.save_splats2d` writes after its header."""
+        :func:`splatk.image.file.save_splats2d` writes after its header."""
         # the palette actually made (k-means makes fewer entries than asked when n < shapes)
         shapes = self.palette.shape[0] if self.palette is not None else self.shapes
         per = bytes_per_primitive(self.kernel, self.latent_dim, shapes)
