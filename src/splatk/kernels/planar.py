@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..backends import PlanarProfile
-from .base import ViewContext, read_weights_file
+from .base import ViewContext, read_weights_file, scale_learned_options
 from .learned_planar import LearnedPlanarKernel
 
 #: weights made by ``splatk pretrain --kind planar --steps 10000 --out src/splatk/assets/learned_planar.pt``
@@ -52,6 +52,12 @@ class PlanarKernel(nn.Module):
     def profile(self, prims: dict[str, torch.Tensor], view: ViewContext) -> PlanarProfile:
         raise NotImplementedError
 
+    @classmethod
+    def scale_to_run(cls, options: dict, factor: float, keep=frozenset(), schedules: bool = True,
+                     lrs: bool = True) -> dict:
+        """As :meth:`splatk.kernels.base.Kernel.scale_to_run`: nothing to scale by default."""
+        return {}
+
 
 class SurfelGaussianKernel(PlanarKernel):
     """The Gaussian surfel (no parameters)."""
@@ -80,6 +86,11 @@ class SurfelLearnedKernel(PlanarKernel):
 
     name = "learned"
     needs_view = True
+
+    @classmethod
+    def scale_to_run(cls, options: dict, factor: float, keep=frozenset(), schedules: bool = True,
+                     lrs: bool = True) -> dict:
+        return scale_learned_options(options, factor, keep, schedules, lrs, "z_lr", 1e-4, 2000)
 
     def __init__(self, grid: int = 8, latent_dim: int = 10, latent2d_dim: int = 10,
                  proj_width: int = 64, dec_width: int = 8, freeze_iters: int = 2000,

@@ -68,6 +68,20 @@ class PrimitiveAdam:
             g["params"][0] = new
             self.prims[name] = new
 
+    @torch.no_grad()
+    def keep_rows(self, rows: torch.Tensor) -> None:
+        """Keep only ``rows`` (indices) of every per-primitive tensor, Adam moments included."""
+        for g in self.opt.param_groups:
+            old = g["params"][0]
+            new = nn.Parameter(old.data[rows].clone())
+            st = self.opt.state.pop(old, None)
+            if st:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    st[key] = st[key][rows].clone()
+                self.opt.state[new] = st
+            g["params"][0] = new
+            self.prims[g["name"]] = new
+
     def state_dict(self) -> dict:
         return self.opt.state_dict()
 
