@@ -135,6 +135,9 @@ def run_fit(
 ) -> FitResult:
     """Train and write RUN/model.pt; returns the run folder and its summary (RUN/fit.json).
 
+    ``cfg`` is trained as given; :func:`fit_config_from_options` builds it from flat options
+    as `splatk fit` does, the run-length scaling of a short run included.
+
     Every setting is checked, and the scene loaded and checked, before the run folder is
     touched; ``overwrite`` replaces only a run folder splatk wrote (``splatk.outputs``), and the
     folder is locked while this process writes it.
