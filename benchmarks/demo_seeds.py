@@ -31,23 +31,13 @@ PRESET = Path(__file__).resolve().parents[1] / "presets" / "demo.yaml"
 
 
 def demo_config(seed: int, overrides: dict):
-    from splatk.stages.fit import FitConfig, boost_short_run_lrs, scale_schedules_to_run
+    """The demo preset's settings for ``seed``, with a variant's ``overrides`` (flat option
+    names), resolved as `splatk fit` resolves them (short-run scaling included; an override
+    stays as given)."""
+    from splatk.stages.fit_config import fit_config_from_options
 
-    p = yaml.safe_load(PRESET.read_text())
-    overrides = dict(overrides)
-    short_run_lrs = overrides.pop("short_run_lrs", p.get("short_run_lrs", False))  # fit's default: off
-    cfg = FitConfig(kernel=p["kernel"], sh_degree=p["sh_degree"], threads=1)
-    t = cfg.train
-    t.budget, t.iters, t.init, t.seed = p["budget"], p["iters"], p["init"], seed
-    scale_schedules_to_run(cfg)  # as `splatk fit` does for a 1500-iteration run
-    if short_run_lrs:
-        boost_short_run_lrs(cfg)
-    for key, value in overrides.items():
-        target = t if hasattr(t, key) else cfg
-        if not hasattr(target, key):
-            raise SystemExit(f"--variant: {key!r} is not a FitConfig or TrainConfig field")
-        setattr(target, key, value)
-    return cfg
+    options = {**yaml.safe_load(PRESET.read_text()), "threads": 1, "seed": seed, **overrides}
+    return fit_config_from_options(options, {k: "variant" for k in overrides})[0]
 
 
 def fit_one(job: tuple[int, str, dict]) -> dict:
@@ -61,7 +51,7 @@ def fit_one(job: tuple[int, str, dict]) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         scene = make_demo_scene(Path(tmp) / "scene")
-        run = run_fit(scene, Path(tmp) / "run", demo_config(seed, overrides))
+        run = run_fit(scene, Path(tmp) / "run", demo_config(seed, overrides)).path
         test = run_eval(run, metrics=("psnr",))["mean"]["psnr"]
         train = run_eval(run, metrics=("psnr",), split="train")["mean"]["psnr"]
     return {"variant": name, "seed": seed, "test_psnr": test, "train_psnr": train}

@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from splatk.stages.fit_config import parse_duration
-from splatk.stages.bench import (
+from splatk.bench import (
     STABILITY_CONDITIONS,
     STABILITY_KERNELS,
     BenchConfig,
@@ -124,7 +124,7 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
                             conditions=st.get("conditions") or STABILITY_CONDITIONS, on_event=on_event)
         print_stability(res.rows)
     elif charts_only:
-        from splatk.stages.bench_charts import draw_pareto_charts, draw_stability_heatmap
+        from splatk.bench.charts import draw_pareto_charts, draw_stability_heatmap
 
         rows = load_results(Path(out) / "results")
         paths = draw_pareto_charts(rows, Path(out) / "charts")
@@ -154,7 +154,7 @@ def _override(method: dict, o: dict) -> dict:
 
 
 def _overrides(ks, color, budget, budget_bytes) -> list[dict]:
-    from splatk.stages.bench import expand_grid
+    from splatk.bench import expand_grid
 
     grid: dict = {}
     if ks:

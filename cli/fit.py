@@ -10,14 +10,11 @@ from rich.console import Console
 from splatk.backends import backend_names
 from splatk.kernels import kernel_names
 from splatk.colors import COLOR_MODELS
-from splatk.stages.fit import boost_short_run_lrs, run_fit, scale_schedules_to_run
+from splatk.stages.fit import run_fit
 from splatk.stages.fit_config import PRIMITIVES, fit_config_from_options
 
 from .common import load_preset, resolve_options
 from .progress import training_progress
-
-#: options that steer how the command line builds the config, not settings of the run
-_CLI_ONLY = ("scale_schedules", "short_run_lrs")
 
 
 @click.command("fit")
@@ -68,19 +65,14 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         raise click.UsageError("SCENE is required (unless --resume)")
     preset_values, preset_path = load_preset(preset)
     values, sources = resolve_options(ctx, opts, preset_values, preset_path)
-    flags = {k: values.pop(k) for k in _CLI_ONLY}
     resume_options = None
     if resume:
         # what the user asked for now; the run's own settings come from its config.yaml
         resume_options = {k: v for k, v in values.items() if sources[k] != "default"}
         cfg = None
     else:
-        cfg, _ = fit_config_from_options(values, sources)
-        changed = {}
-        if flags["scale_schedules"] is not False:  # as `splatk bench` does
-            changed = scale_schedules_to_run(cfg)
-            if flags["short_run_lrs"] is not False:
-                changed.update(boost_short_run_lrs(cfg))
+        cfg, notes = fit_config_from_options(values, sources)
+        changed = {k: v for k, v in notes.get("scaled_schedules", {}).items() if k != "factor"}
         for key, value in changed.items():
             sources[key] = f"scaled to the run length ({cfg.train.iters} of 30000 iterations): {value}"
     console = Console(stderr=True)
@@ -127,7 +119,7 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
     old = signal.signal(signal.SIGTERM, handle_signal)
     old_int = signal.signal(signal.SIGINT, handle_signal)
     try:
-        run = run_fit(scene, out, cfg, overwrite=overwrite, resume=resume, config_sources=sources,
+        result = run_fit(scene, out, cfg, overwrite=overwrite, resume=resume, config_sources=sources,
                       on_start=on_start, on_step=on_step, should_stop=lambda: stop["flag"],
                       resume_options=resume_options)
     except KeyboardInterrupt:
@@ -141,10 +133,9 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         signal.signal(signal.SIGINT, old_int)
         if progress is not None:
             progress.stop()
+    run = result.path
     if task.get("auto_budget"):
-        import json
-
-        rep = json.loads((run / "fit.json").read_text()).get("auto_budget") or {}
+        rep = result.summary.get("auto_budget") or {}
         stages = ", ".join(f"{st['budget']:,}: {st['holdout_psnr']:.2f} dB" for st in rep.get("stages", []))
         prune = rep.get("prune") or {}
         comp = rep.get("compact")

@@ -24,7 +24,8 @@ from splatk.errors import InputError
 from splatk.models.planar import PlanarModel
 from splatk.stages.autobudget import AutoBudgetConfig
 from splatk.stages.evaluate import run_eval
-from splatk.stages.fit import FitConfig, run_fit, scale_schedules_to_run
+from splatk.stages.fit import FitConfig, run_fit
+from splatk.stages.run_length import scale_schedules_to_run
 from splatk.image.fit import ImageFitConfig, fit_image
 from splatk.train.trainer import TrainConfig
 
@@ -127,8 +128,8 @@ def test_budget_auto_on_cuda(tmp_path):
     """--budget auto's short runs, held-out renders, compaction and prune run on the GPU."""
     scene = make_demo_scene(tmp_path / "demo", num_views=8, size=32)
     auto = AutoBudgetConfig(start_fraction=0.125, max_factor=1.0, threshold_db=-100.0, stage_share=0.2)
-    train = TrainConfig(iters=100, budget=400, init="random", refine_every=1, refine_start=0, device="cuda")
-    run = run_fit(scene, tmp_path / "run", FitConfig(sh_degree=1, device="cuda", auto_budget=auto, train=train))
+    train = TrainConfig(iters=100, budget=400, init="random", device="cuda", mcmc=MCMCConfig(refine_every=1, refine_start=0))
+    run = run_fit(scene, tmp_path / "run", FitConfig(sh_degree=1, device="cuda", auto_budget=auto, train=train)).path
     rep = json.loads((run / "fit.json").read_text())["auto_budget"]
     assert rep["chosen_budget"] == 400 and "compact" in rep and "prune" in rep
 

@@ -22,7 +22,7 @@ from click.testing import CliRunner
 
 from splatk.errors import InputError
 from splatk.models.io import load_model
-from splatk.train.trainer import Trainer
+from splatk.train.state import numpy_rng_state, set_numpy_rng_state
 from splatk_cli.main import cli
 
 FAST = ["--backend", "torch", "-q"]
@@ -199,13 +199,13 @@ def test_rng_states_round_trip_through_weights_only_load():
     random.seed(5)
     random.gauss(0, 1)
     buf = io.BytesIO()
-    torch.save({"numpy": Trainer._numpy_rng_state(), "python": random.getstate()}, buf)
+    torch.save({"numpy": numpy_rng_state(), "python": random.getstate()}, buf)
     buf.seek(0)
     back = torch.load(buf, weights_only=True)
     want = (np.random.normal(size=4), np.random.randint(0, 2**30, 4), random.random(), random.gauss(0, 1))
     np.random.seed(0)
     random.seed(0)
-    Trainer._set_numpy_rng_state(back["numpy"])
+    set_numpy_rng_state(back["numpy"])
     version, internal, gauss_next = back["python"]
     random.setstate((version, tuple(internal), gauss_next))
     got = (np.random.normal(size=4), np.random.randint(0, 2**30, 4), random.random(), random.gauss(0, 1))

@@ -14,7 +14,7 @@ def test_preset_loads(path):
     data, found = load_preset(str(path))
     assert isinstance(data, dict) and data and found == path
     if {"defaults", "methods", "grid", "stability"} & set(data):  # a `splatk bench` preset
-        from splatk.stages.bench import expand_grid, fit_config_for, load_bench_file
+        from splatk.bench import expand_grid, fit_config_for, load_bench_file
 
         bench = load_bench_file(path)
         methods = list(bench.get("methods") or []) + expand_grid(bench.get("grid") or {})
@@ -54,7 +54,8 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     import yaml
     from click.testing import CliRunner
     from splatk.data.synthetic import make_demo_scene
-    from splatk.stages.fit import FitConfig, scale_schedules_to_run
+    from splatk.stages.fit import FitConfig
+    from splatk.stages.run_length import scale_schedules_to_run
     from splatk_cli.main import cli
 
     scene = make_demo_scene(tmp_path / "scene", num_views=6, size=24)
@@ -63,14 +64,14 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     assert res.exit_code == 0, res.output
     doc = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
     train = doc["settings"]["train"]
-    assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (5, 5, 10)
+    assert (train["mcmc"]["refine_every"], train["mcmc"]["refine_start"], train["sh_degree_interval"]) == (5, 5, 10)
     assert "scaled to the run length" in doc["sources"]["refine_every"]
-    assert train["noise_lr"] == 5e5  # MCMC noise x 30k/300, capped at x10
+    assert train["mcmc"]["noise_lr"] == 5e5  # MCMC noise x 30k/300, capped at x10
     res = CliRunner().invoke(cli, base + ["--no-scale-schedules", "--out", str(tmp_path / "b")])
     assert res.exit_code == 0, res.output
     train = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["settings"]["train"]
-    assert (train["refine_every"], train["refine_start"], train["sh_degree_interval"]) == (100, 500, 1000)
-    assert train["noise_lr"] == 5e4
+    assert (train["mcmc"]["refine_every"], train["mcmc"]["refine_start"], train["sh_degree_interval"]) == (100, 500, 1000)
+    assert train["mcmc"]["noise_lr"] == 5e4
 
     assert train["scales_lr_mult"] == 1.0  # the 30k run's LRs too
     res = CliRunner().invoke(cli, base + ["--kernel", "learned", "--out", str(tmp_path / "c")])
@@ -87,14 +88,14 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     res = CliRunner().invoke(cli, base + ["--no-short-run-lrs", "--out", str(tmp_path / "d")])
     assert res.exit_code == 0, res.output
     train_d = yaml.safe_load((tmp_path / "d" / "config.yaml").read_text())["settings"]["train"]
-    assert train_d["scales_lr_mult"] == 1.0 and train_d["refine_every"] == 5  # schedules still scaled
+    assert train_d["scales_lr_mult"] == 1.0 and train_d["mcmc"]["refine_every"] == 5  # schedules still scaled
     res = CliRunner().invoke(cli, base + ["--preset", "demo", "--out", str(tmp_path / "e")])
     assert res.exit_code == 0, res.output
     train_e = yaml.safe_load((tmp_path / "e" / "config.yaml").read_text())["settings"]["train"]
     assert train_e["scales_lr_mult"] == 1.0  # the demo preset turns the boost off
 
     full = FitConfig()
-    assert scale_schedules_to_run(full) == {} and full.train.refine_every == 100
+    assert scale_schedules_to_run(full) == {} and full.train.mcmc.refine_every == 100
     timed = FitConfig(kernel="learned")
     timed.train.iters, timed.train.time_budget = 1000, 60.0
     assert scale_schedules_to_run(timed) == {} and "freeze_iters" not in timed.kernel_options
@@ -106,5 +107,51 @@ def test_fit_scales_schedules_to_short_runs(tmp_path):
     scale_schedules_to_run(two_thirds)
     assert scale_schedules_to_run(two_thirds)["noise_lr"] == pytest.approx(5e4 * 1.5)  # scaling twice: same
     kept = FitConfig()
-    kept.train.iters, kept.train.noise_lr = 2000, 7e3
-    assert "noise_lr" not in scale_schedules_to_run(kept, keep={"noise_lr"}) and kept.train.noise_lr == 7e3
+    kept.train.iters, kept.train.mcmc.noise_lr = 2000, 7e3
+    assert "noise_lr" not in scale_schedules_to_run(kept, keep={"noise_lr"}) and kept.train.mcmc.noise_lr == 7e3
+
+
+def test_python_run_fit_trains_as_the_command_does(tmp_path):
+    """The short-run scaling belongs to the fit's settings, not to the command line: a Python
+    caller that builds its config from the same options writes the same config.yaml settings as
+    `splatk fit` (schedules, MCMC noise, the learned kernel's freeze and LRs, the two switches)."""
+    import yaml
+    from click.testing import CliRunner
+    from splatk.data.synthetic import make_demo_scene
+    from splatk.stages.fit import run_fit
+    from splatk.stages.fit_config import fit_config_from_options
+    from splatk_cli.main import cli
+
+    scene = make_demo_scene(tmp_path / "scene", num_views=6, size=24)
+    options = {"kernel": "learned", "iters": 30, "budget": 100, "threads": 1, "backend": "torch"}
+    flags = [x for k, v in options.items() for x in (f"--{k.replace('_', '-')}", str(v))]
+    res = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(tmp_path / "cli"), *flags, "-q"])
+    assert res.exit_code == 0, res.output
+    cfg, notes = fit_config_from_options(options)
+    result = run_fit(scene, tmp_path / "py", cfg)
+    by_cli = yaml.safe_load((tmp_path / "cli" / "config.yaml").read_text())
+    by_python = yaml.safe_load((result.path / "config.yaml").read_text())
+    assert by_python["settings"] == by_cli["settings"]
+    settings = by_python["settings"]
+    assert settings["scale_schedules"] and settings["short_run_lrs"]
+    assert settings["train"]["mcmc"]["refine_every"] == 5 and settings["kernel_options"]["freeze_iters"] == 2
+    assert notes["scaled_schedules"]["net_lr_mult"] == settings["kernel_options"]["net_lr_mult"] == 10.0
+    assert result.summary["iterations"] == 30 and result.summary["kernel"] == "learned"
+
+
+def test_config_files_of_older_runs_still_load():
+    """A run folder written before MCMC's settings moved under train.mcmc (and before the
+    run-length switches were settings) still loads for --resume."""
+    from splatk.stages.autobudget import AutoBudgetConfig
+    from splatk.stages.fit_config import FitConfig
+
+    old = FitConfig().to_dict()
+    mcmc = old["train"].pop("mcmc")
+    old["train"].update({k: mcmc[k] for k in ("refine_every", "refine_start", "refine_stop", "noise_lr",
+                                              "split_scales", "hold_growth")})
+    old["train"]["refine_every"] = 7
+    del old["scale_schedules"], old["short_run_lrs"]
+    old["auto_budget"] = {"selection": "short_runs", "paired": True, "refit": True, "return_holdout": True}
+    cfg = FitConfig.from_dict(old)
+    assert cfg.train.mcmc.refine_every == 7 and cfg.train.mcmc.noise_lr == 5e4
+    assert cfg.auto_budget == AutoBudgetConfig() and cfg.scale_schedules

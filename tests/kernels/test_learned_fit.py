@@ -4,6 +4,7 @@ import torch
 from splatk import backends
 from splatk.metrics import psnr
 from splatk.models.volumetric import SplatModel
+from splatk.train.mcmc import MCMCConfig
 from splatk.train.trainer import TrainConfig, Trainer
 from tests.scenes import synthetic_scene
 
@@ -22,8 +23,8 @@ def test_short_learned_fit_raises_test_psnr():
     model = SplatModel.from_points(scene.points, scene.point_colors, kernel="learned", color="sh",
                                    kernel_options={"freeze_iters": 50}, color_options={"sh_degree": 1})
     before = test_psnr(model)
-    cfg = TrainConfig(iters=150, budget=200, backend="torch", refine_start=50, refine_every=50,
-                      sh_degree_interval=50, seed=0)
+    cfg = TrainConfig(iters=150, budget=200, backend="torch", sh_degree_interval=50, seed=0,
+                      mcmc=MCMCConfig(refine_start=50, refine_every=50))
     trainer = Trainer(scene, model, cfg)
     net0 = {k: v.clone() for k, v in model.kernel.state_dict().items()}
     trainer.run()

@@ -11,6 +11,7 @@ from splatk.kernels import ViewContext, make_kernel
 from splatk.kernels.learned import DEFAULT_WEIGHTS, LearnedKernel
 from splatk.models.io import load_model, model_spec, save_model
 from splatk.stages.export import ply_arrays
+from splatk.train.mcmc import MCMCConfig
 from splatk.train.trainer import TrainConfig, Trainer
 from tests.scenes import orbit_cameras, random_model, synthetic_scene
 
@@ -131,7 +132,7 @@ def test_trainer_keeps_networks_frozen_then_trains_them():
     model = random_model(20, 4, kernel="learned")
     model.kernel.freeze_iters = 3
     before = {k: v.clone() for k, v in model.kernel.state_dict().items()}
-    tr = Trainer(scene, model, TrainConfig(iters=6, budget=20, backend="torch", refine_start=100))
+    tr = Trainer(scene, model, TrainConfig(iters=6, budget=20, backend="torch", mcmc=MCMCConfig(refine_start=100)))
     z0 = model.prims["z3d"].detach().clone()
     for _ in range(3):
         tr.train_step()

@@ -13,8 +13,8 @@ import torch
 from splatk.data.synthetic import make_demo_scene
 from splatk.errors import InputError
 from splatk.machine import CPU_FEATURES
-from splatk.stages import bench
-from splatk.stages.bench import (
+from splatk.bench import runner
+from splatk.bench import (
     BenchConfig,
     classify,
     fit_config_for,
@@ -22,7 +22,7 @@ from splatk.stages.bench import (
     run_bench,
     run_stability,
 )
-from splatk.stages.bench_charts import pareto_front
+from splatk.bench.charts import pareto_front
 from splatk.stages.fit_config import bytes_per_primitive
 from splatk.stages.fit import run_fit
 
@@ -49,7 +49,7 @@ def _spy_run_fit(monkeypatch):
         calls.append(kwargs.get("resume", False))
         return run_fit(*args, **kwargs)
 
-    monkeypatch.setattr(bench, "run_fit", spy)
+    monkeypatch.setattr(runner, "run_fit", spy)
     return calls
 
 
@@ -136,7 +136,7 @@ def test_budget_bytes_from_floats_per_primitive():
 
 def test_short_runs_scale_schedules():
     cfg, notes = fit_config_for({"kernel": "learned", "k": 4}, {"iters": 3000})
-    assert cfg.train.refine_start == 50 and cfg.train.refine_every == 10 and cfg.train.sh_degree_interval == 100
+    assert cfg.train.mcmc.refine_start == 50 and cfg.train.mcmc.refine_every == 10 and cfg.train.sh_degree_interval == 100
     assert cfg.kernel_options["freeze_iters"] == 200
     assert cfg.train.scales_lr_mult == round(10**0.5, 3)  # sqrt(30k / 3k)
     assert fit_config_for({}, {"iters": 100})[0].train.scales_lr_mult == 10.0  # capped
@@ -148,10 +148,10 @@ def test_short_runs_scale_schedules():
     mine, _ = fit_config_for({"kernel": "learned", "kernel_options": {"z3d_lr": 0.0}}, {"iters": 3000})
     assert mine.kernel_options["z3d_lr"] == 0.0
     full, _ = fit_config_for({"kernel": "learned"}, {"iters": 3000}, scale_schedules=False)
-    assert full.train.refine_start == 500 and "freeze_iters" not in full.kernel_options
+    assert full.train.mcmc.refine_start == 500 and "freeze_iters" not in full.kernel_options
     assert full.train.scales_lr_mult == 1.0
     fit_lrs, _ = fit_config_for({"kernel": "learned", "k": 4}, {"iters": 3000}, scale_lrs=False)
-    assert fit_lrs.train.refine_every == 10  # schedules still scaled...
+    assert fit_lrs.train.mcmc.refine_every == 10  # schedules still scaled...
     assert fit_lrs.train.scales_lr_mult == 1.0 and "z3d_lr" not in fit_lrs.kernel_options  # ...LRs not
     assert "net_lr_mult" not in fit_lrs.kernel_options
 

@@ -12,6 +12,7 @@ from scenes import synthetic_scene  # noqa: E402
 
 from splatk import backends
 from splatk.models.volumetric import SplatModel
+from splatk.train.mcmc import MCMCConfig
 from splatk.train.trainer import TrainConfig, Trainer
 
 
@@ -32,7 +33,7 @@ def test_short_fit_raises_test_psnr(kernel):
     scene = synthetic_scene()
     model = SplatModel.from_points(scene.points, scene.point_colors, kernel=kernel, color="sh",
                                    color_options={"sh_degree": 1})
-    cfg = TrainConfig(iters=250, budget=150, backend="torch", refine_start=100, refine_every=50)
+    cfg = TrainConfig(iters=250, budget=150, backend="torch", mcmc=MCMCConfig(refine_start=100, refine_every=50))
     tr = Trainer(scene, model, cfg)
     before = mean_test_psnr(tr.model, scene)
     tr.run()
@@ -46,8 +47,8 @@ def test_short_fit_raises_test_psnr(kernel):
 def collapse_trainer(scene, iters: int) -> Trainer:
     torch.manual_seed(0)
     m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
-    return Trainer(scene, m, TrainConfig(iters=iters, budget=150, backend="torch", refine_start=100,
-                                         refine_every=50, snapshot_every=50))
+    return Trainer(scene, m, TrainConfig(iters=iters, budget=150, backend="torch", snapshot_every=50,
+                                         mcmc=MCMCConfig(refine_start=100, refine_every=50)))
 
 
 def make_transparent(tr: Trainer) -> None:
@@ -106,7 +107,7 @@ def test_collapse_rollback_to_a_worse_snapshot_does_not_loop():
     tr = collapse_trainer(scene, 400)
     tr.run(should_stop=lambda: tr.it >= 200)
     make_transparent(tr)
-    tr._snapshot = tr.state_dict()  # a "healthy" snapshot of the collapsed model
+    tr.take_snapshot()  # a "healthy" snapshot of the collapsed model
     steps = []
     tr.run(on_step=lambda info: steps.append(info.it), should_stop=lambda: len(steps) > 2000)
     assert tr.it == 400, [e["message"] for e in tr.events][-3:]
@@ -118,29 +119,29 @@ def test_a_loss_rise_that_rollbacks_do_not_cure_turns_the_check_off():
     bonsai at 400k) is not the step size's doing: after MAX_REPEATED_LOSS_ROLLBACKS the run keeps
     its state, gets its step size back and goes on without the loss check until the next
     snapshot, which turns it on again. A NaN rollback is unaffected."""
-    from splatk.train.trainer import MAX_REPEATED_LOSS_ROLLBACKS
+    from splatk.train.guard import MAX_REPEATED_LOSS_ROLLBACKS
 
     scene = synthetic_scene(num_views=8)
     tr = collapse_trainer(scene, 400)
     tr.run(should_stop=lambda: tr.it >= 200)
-    tr._snapshot = tr.state_dict()
+    tr.take_snapshot()
     tr.cfg.snapshot_every = 1000  # no new snapshot while the rise repeats
-    real = tr._diverging
+    real = tr.guard.diverging
 
     def rises_at_270(loss):  # the stats still update; the rise is at the same place every time
         fired = real(loss)
-        return fired or (270 <= tr.it < 275 and tr.best_loss_mean is not None)
+        return fired or (270 <= tr.it < 275 and tr.guard.best_loss_mean is not None)
 
-    tr._diverging = rises_at_270
+    tr.guard.diverging = rises_at_270
     tr.run(should_stop=lambda: tr.it >= 280)
     kinds = [e["event"] for e in tr.events]
     assert kinds == ["loss_rollback"] * MAX_REPEATED_LOSS_ROLLBACKS + ["loss_check_off"], tr.events
     assert all("rolled back to iteration 200" in e["message"] for e in tr.events[:-1])
-    assert tr.lr_scale == 1.0 and not tr._loss_check and tr.it == 280
+    assert tr.lr_scale == 1.0 and not tr.guard.loss_check and tr.it == 280
     tr.cfg.snapshot_every = 50
     tr.run(should_stop=lambda: tr.it >= 310)  # the snapshot at 300 turns the check back on
-    assert tr._loss_check and tr._loss_rollback_series is None
-    tr._diverging = real
+    assert tr.guard.loss_check and tr.guard.loss_rollback_series is None
+    tr.guard.diverging = real
     tr.run()
     assert tr.it == 400 and mean_test_psnr(tr.model, scene) > 20.0
 
@@ -156,7 +157,7 @@ def test_loss_check_judges_against_the_start_as_well_as_the_lowest_mean():
         tr = collapse_trainer(scene, 10)
         for k, v in cfg.items():
             setattr(tr.cfg, k, v)
-        return [i for i, loss in enumerate(losses) if tr._diverging(loss)]
+        return [i for i, loss in enumerate(losses) if tr.guard.diverging(loss)]
 
     never_improved = [1.0] * 50 + [1.4] * 200
     assert TrainConfig().divergence_factor > 1.4 and fired(never_improved)
@@ -184,8 +185,8 @@ def _check_round_trip():
 
     def fresh():
         m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
-        return Trainer(scene, m, TrainConfig(iters=60, budget=100, backend="torch", refine_start=10,
-                                             refine_every=20, seed=3))
+        return Trainer(scene, m, TrainConfig(iters=60, budget=100, backend="torch", seed=3,
+                                             mcmc=MCMCConfig(refine_start=10, refine_every=20)))
 
     a = fresh()
     a.run()

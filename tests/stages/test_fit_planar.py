@@ -15,6 +15,7 @@ from splatk.errors import InputError
 from splatk.models.io import load_model, model_spec, save_model
 from splatk.models.planar import PlanarModel
 from splatk.stages.fit import FitConfig, build_model
+from splatk.train.mcmc import MCMCConfig
 from splatk.train.trainer import TrainConfig, Trainer
 
 
@@ -38,7 +39,7 @@ def test_short_planar_fit_raises_test_psnr_and_round_trips(kernel, tmp_path):
         opts = {"freeze_iters": 100} if kernel == "learned" else {}
         model = PlanarModel.from_points(scene.points, scene.point_colors, kernel=kernel, color="sh",
                                         kernel_options=opts, color_options={"sh_degree": 1})
-        cfg = TrainConfig(iters=300, budget=150, backend="auto", refine_start=100, refine_every=50)
+        cfg = TrainConfig(iters=300, budget=150, backend="auto", mcmc=MCMCConfig(refine_start=100, refine_every=50))
         tr = Trainer(scene, model, cfg)
         before = mean_test_psnr(tr.model, scene, "auto")
         tr.run()
@@ -95,8 +96,8 @@ def test_planar_training_state_round_trip():
             torch.manual_seed(0)
             m = PlanarModel.from_points(scene.points, scene.point_colors, kernel="learned",
                                         kernel_options={"freeze_iters": 20}, color_options={"sh_degree": 1})
-            return Trainer(scene, m, TrainConfig(iters=60, budget=100, backend="auto", refine_start=10,
-                                                 refine_every=20, seed=3))
+            return Trainer(scene, m, TrainConfig(iters=60, budget=100, backend="auto", seed=3,
+                                                 mcmc=MCMCConfig(refine_start=10, refine_every=20)))
 
         a = fresh()
         a.run()

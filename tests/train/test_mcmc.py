@@ -43,7 +43,7 @@ def _split_into(copies: int, rule: str, kernel: str = "gaussian"):
     before = {k: v.detach().clone() for k, v in model.prims.items()}
     lrs = {**model.learning_rates(), "means": 1e-4}  # the trainer adds the means (scene extent)
     opt = PrimitiveAdam(model.prims, lrs)
-    strategy = MCMCStrategy(MCMCConfig(cap_max=copies, growth=float(copies), split_scales=rule))
+    strategy = MCMCStrategy(MCMCConfig(growth=float(copies), split_scales=rule), cap_max=copies)
     assert strategy.add(model, opt) == copies - 1
     return model, before
 
@@ -88,7 +88,7 @@ def test_growth_waits_while_the_step_found_as_many_dead_as_it_would_add(hold):
             model.prims["opacity_logits"][:n_dead] = -10.0  # opacity 4.5e-5 < min_opacity
         lrs = {**model.learning_rates(), "means": 1e-4}
         opt = PrimitiveAdam(model.prims, lrs)
-        strategy = MCMCStrategy(MCMCConfig(cap_max=1000, refine_every=1, refine_start=0, hold_growth=hold))
+        strategy = MCMCStrategy(MCMCConfig(refine_every=1, refine_start=0, hold_growth=hold), cap_max=1000)
         strategy.step(1, 0.0, model, opt, means_lr=1e-4, generator=torch.Generator().manual_seed(0))
         assert strategy.last_stats["relocated"] == n_dead
         assert model.num_primitives == (105 if grows else 100), (n_dead, hold)

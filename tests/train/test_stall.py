@@ -16,7 +16,8 @@ from splatk.data.synthetic import make_demo_scene
 from splatk.errors import TrainingStalled
 from splatk.models.volumetric import SplatModel
 from splatk.train import trainer as trainer_module
-from splatk.train.trainer import MAX_ROLLBACKS_WITHOUT_PROGRESS, TrainConfig, Trainer
+from splatk.train.guard import MAX_ROLLBACKS_WITHOUT_PROGRESS
+from splatk.train.trainer import TrainConfig, Trainer
 from splatk_cli.main import cli
 
 

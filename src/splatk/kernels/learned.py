@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backends import Profile
-from .base import Kernel, ViewContext, read_weights_file, register_kernel
+from .base import Kernel, ViewContext, read_weights_file, register_kernel, scale_learned_options
 
 #: the shipped pretrained networks (cosine target, default architecture), made by
 #: ``splatk pretrain --target cosine --out src/splatk/assets/learned_cosine.pt``
@@ -178,6 +178,11 @@ class LearnedKernel(Kernel):
     name = "learned"
     support_sigmas = 1.0
     needs_view = True
+
+    @classmethod
+    def scale_to_run(cls, options: dict, factor: float, keep=frozenset(), schedules: bool = True,
+                     lrs: bool = True) -> dict:
+        return scale_learned_options(options, factor, keep, schedules, lrs, "z3d_lr", 1e-4, 2000)
 
     def __init__(
         self,

@@ -32,7 +32,7 @@ from torch import nn
 
 from ..backends import PlanarProfile
 from ..functional.planar import SURFEL_SUPPORT_SIGMAS, bilinear, gaussian_surfel
-from .base import read_weights_file, register_kernel
+from .base import read_weights_file, register_kernel, scale_learned_options
 from .learned import LEAKY_SLOPE, LOG_ANGLE_SCALE, LOG_ANGLE_SHIFT, LOG_DIST_SCALE, _he_init, _mlp
 from .planar import PlanarKernel
 
@@ -142,6 +142,11 @@ class SurfelLearnedKernel(PlanarKernel):
     """
 
     name = "learned"
+
+    @classmethod
+    def scale_to_run(cls, options: dict, factor: float, keep=frozenset(), schedules: bool = True,
+                     lrs: bool = True) -> dict:
+        return scale_learned_options(options, factor, keep, schedules, lrs, "z_lr", 1e-4, 2000)
     needs_view = True
 
     def __init__(self, grid: int = 8, latent_dim: int = 10, latent2d_dim: int = 10,

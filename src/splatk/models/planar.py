@@ -70,8 +70,9 @@ class PlanarModel(PrimitiveModel):
 
     # ---- rendering ----------------------------------------------------------------------
     def render(self, camera, background: torch.Tensor, sh_degree: int = 3, *,
-               backend: Backend) -> RenderResult:
+               backend: Backend, colors: torch.Tensor | None = None) -> RenderResult:
         """Render one camera with ``backend``'s ops; differentiable in every parameter.
+        ``colors`` ([N, C]) replaces the colour model's output, as in ``SplatModel.render``.
         ``visible`` lists the drawn primitives (in front of the camera, see
         :func:`~splatk.functional.planar.planar_in_front`) in index order."""
         dev = self.prims["means"].device
@@ -82,7 +83,8 @@ class PlanarModel(PrimitiveModel):
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         scales = torch.exp(vis["log_scales"])
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, backend)
+        rgb = (self.color.colors(vis, vis["means"] - cam_center, sh_degree, backend) if colors is None
+               else colors.index_select(0, idx))
         if self.kernel.needs_view:
             rw, tw = viewmat[:3, :3], viewmat[:3, 3]
             view = ViewContext(vis["means"] @ rw.T + tw, scales, rw @ quats_to_rotmats(vis["quats"]), backend)

@@ -61,9 +61,11 @@ class SplatModel(PrimitiveModel):
         sh_degree: int = 3,
         *,
         backend: Backend,
+        colors: torch.Tensor | None = None,
     ) -> "RenderResult":
         """Render one camera with ``backend``'s ops (``splatk.backends.get``). Differentiable in
-        every parameter."""
+        every parameter. ``colors`` ([N, C], background [C]) replaces the colour model's output:
+        what each primitive composites (a channel of ones gives blending weights)."""
         dev = self.prims["means"].device
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
@@ -76,7 +78,8 @@ class SplatModel(PrimitiveModel):
         # accumulating index_put_ that v[idx] records
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb = self.color.colors(vis, vis["means"] - cam_center, sh_degree, backend)
+        rgb = (self.color.colors(vis, vis["means"] - cam_center, sh_degree, backend) if colors is None
+               else colors.index_select(0, idx))
         if not self.kernel.needs_view:
             view = ViewContext(None, None, None, backend)
         else:

@@ -1,21 +1,18 @@
-"""`splatk fit`: scene folder -> trained model in a run folder.
+"""`splatk fit`: scene folder -> trained model in a run folder (layout:
+:mod:`splatk.stages.run_folder`).
 
-Run folder layout::
-
-    RUN/config.yaml          resolved settings, with where each value came from
-    RUN/checkpoints/last.pt  full training state, written atomically every N iterations
-    RUN/model.pt             final model (native format; `splatk export` converts it)
-    RUN/fit.json             summary: iterations, wall time, primitives, events (NaN rollbacks),
-                             test PSNR of the initial model, the auto-budget report
-    RUN/train_log.jsonl      loss / PSNR / primitive count every 100 iterations
+:func:`run_fit` checks the settings and the scene, then trains: one :class:`Trainer`, or with
+``--budget auto`` the short runs, the refit and the compaction (:mod:`splatk.stages.autobudget`).
+The settings come as a :class:`FitConfig`; :func:`~splatk.stages.fit_config.fit_config_from_options`
+builds one from flat options as `splatk fit` and `splatk bench` do (short runs scaled to their
+length included), so a Python caller that goes through it trains as the command does.
 """
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -28,15 +25,15 @@ from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
 from ..models.init import initial_points
-from ..models.io import atomic_torch_save, model_spec, save_model
+from ..models.io import model_spec
 from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
 from ..outputs import OutputDir, check_output_dir
-from ..train.mcmc import MCMCConfig
-from ..train.trainer import StepInfo, TrainConfig, Trainer
+from ..train.trainer import StepInfo, Trainer
 from .autobudget import AutoBudget, render_psnr, split_holdout
 from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, color_options as _color_options,
                          fit_config_from_options)
+from .run_folder import RunFolder, clean_resume_leftovers, record_resume_changes, write_config
 
 #: the marker kind of a run folder (``splatk.outputs``)
 RUN_KIND = "fit run"
@@ -44,93 +41,12 @@ RUN_KIND = "fit run"
 RESUME_CHANGEABLE = ("iters", "time_budget", "checkpoint_every", "threads", "backend", "device")
 
 
-#: the paper's run length; the step-count schedules below are tuned for it
-FULL_ITERS = 30_000
-#: step-count schedules at 30k iterations: (value, smallest value when scaled to a shorter run)
-RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
-#: the learned kernel freezes its networks for this many of the 30k iterations (paper Sec. 4.5)
-LEARNED_FREEZE_ITERS = 2000
-#: short runs raise MCMC's position noise (DBS's noise_lr, tuned for 30k iterations) by
-#: 30k / iters, at most this much
-NOISE_LR_MULT_MAX = 10.0
+@dataclass
+class FitResult:
+    """What :func:`run_fit` wrote: the run folder and the summary it holds as RUN/fit.json."""
 
-
-def scale_schedules_to_run(cfg: "FitConfig", keep: frozenset | set = frozenset()) -> dict:
-    """Shrink the step-count schedules of a run shorter than 30k iterations in proportion
-    (gsplat's ``steps_scaler`` idea); returns {setting: new value} (empty when nothing changed).
-
-    Unscaled, a 2000-iteration run would refine only every 100 steps, so MCMC's 5% growth per
-    refine could not reach the budget (a quarter-budget random init ends near 43% of it), raise
-    the SH degree twice, and leave a learned kernel's networks frozen for the whole run.
-    MCMC's position noise grows by 30k / iters (at most x10): the means get that many fewer
-    gradient steps, and the noise is what moves near-transparent primitives to where they are
-    needed (benchmarks/README.md, "MCMC noise in short runs": fox, random init, 2000 iterations,
-    +2.3 dB over two seeds). Runs with a time budget are left alone (their schedules follow
-    progress). Settings named in ``keep`` (set explicitly by the user) and the learned kernel's
-    explicit ``freeze_iters`` stay as given. Learning rates are left to
-    :func:`boost_short_run_lrs`.
-    """
-    t = cfg.train
-    if t.time_budget is not None or t.iters >= FULL_ITERS:
-        return {}
-    s = t.iters / FULL_ITERS
-    scaled = {}
-    for key, (full, lo) in RUN_LENGTH_SCHEDULES.items():
-        if key not in keep:
-            setattr(t, key, max(lo, round(full * s)))
-            scaled[key] = getattr(t, key)
-    if "noise_lr" not in keep:
-        # from the 30k default, not the current value, so scaling twice changes nothing
-        t.noise_lr = scaled["noise_lr"] = TrainConfig.noise_lr * min(NOISE_LR_MULT_MAX, 1 / s)
-    if cfg.kernel == "learned" and "freeze_iters" not in cfg.kernel_options:
-        cfg.kernel_options["freeze_iters"] = scaled["freeze_iters"] = round(LEARNED_FREEZE_ITERS * s)
-    return scaled
-
-
-#: short runs raise the log-scale LR by sqrt(30k / iters), at most this much
-SCALES_LR_MULT_MAX = 10.0
-#: ... and the learned kernel's latent and network LRs by 30k / iters, at most this much
-KERNEL_LR_MULT_MAX = 10.0
-#: the learned kernels' latent: (option name, default LR) per primitive type
-#: (kernels/learned.py z3d_lr, kernels/learned_planar.py z_lr)
-LEARNED_LATENT_LR = {"volumetric": ("z3d_lr", 1e-4), "planar": ("z_lr", 1e-4)}
-
-
-def boost_short_run_lrs(cfg: "FitConfig", keep: frozenset | set = frozenset()) -> dict:
-    """Raise the learning rates tuned for 30k iterations on a shorter run; returns what changed.
-
-    ``splatk fit`` and ``splatk bench`` do this for every short run unless told not to
-    (``--no-short-run-lrs``, ``short_run_lrs: false`` as in the demo preset): 2000 iterations,
-    50k Gaussians, fox at 1/16: 23.79 dB without, 29.77 with; lego at 1/8: 31.60 without, 31.22
-    with. It was bench-only until the trainer's collapse checks kept LR x10 on top of it above
-    the initial PSNR in the stability matrix (docs/measurements.md, "Stability"). Settings named in ``keep``
-    and explicit kernel options stay as given.
-    """
-    t = cfg.train
-    if t.time_budget is not None or t.iters >= FULL_ITERS:
-        return {}
-    s = t.iters / FULL_ITERS
-    boosted = {}
-    if "scales_lr_mult" not in keep:
-        # the log-scale LR is tuned for 30k iterations; short runs starve it (fox, random
-        # init, 2000 iterations: learned k=4 13.9 -> 21.7 dB at x3, gaussian 20.9 -> 21.6)
-        t.scales_lr_mult = boosted["scales_lr_mult"] = round(min(SCALES_LR_MULT_MAX, math.sqrt(1 / s)), 3)
-    if cfg.kernel == "learned":
-        # the latents and networks get 30k / iters fewer steps, and their LRs decay over the
-        # shorter run: raise them by that factor, at most x10 (cup / fox at 1/8, 2000
-        # iterations, learned k=4: z3d and network LR x10 gave +0.97 / +0.39 dB). The planar
-        # kernel has the same schedule options, its latent LR is called z_lr.
-        boost = min(KERNEL_LR_MULT_MAX, 1 / s)
-        opts = cfg.kernel_options
-        latent_key, latent_lr = LEARNED_LATENT_LR[cfg.primitive]
-        if latent_key not in opts:
-            opts[latent_key] = boosted[latent_key] = latent_lr * boost
-        if "net_lr_mult" not in opts:
-            pretrained = str(opts.get("weights", "default")).lower() != "none"
-            # without pretraining the paper's x10 already applies; do not stack the two
-            base = 1.0 if pretrained else 10.0
-            opts["net_lr_mult"] = boosted["net_lr_mult"] = max(base, round(boost, 3))
-    return boosted
+    path: Path
+    summary: dict
 
 
 def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
@@ -213,8 +129,11 @@ def run_fit(
     on_step: Callable[[StepInfo], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     resume_options: dict | None = None,
-) -> Path:
-    """Train and write RUN/model.pt; returns the run folder.
+) -> FitResult:
+    """Train and write RUN/model.pt; returns the run folder and its summary (RUN/fit.json).
+
+    ``cfg`` is trained as given; :func:`fit_config_from_options` builds it from flat options
+    as `splatk fit` does, the run-length scaling of a short run included.
 
     Every setting is checked, and the scene loaded and checked, before the run folder is
     touched; ``overwrite`` replaces only a run folder splatk wrote (``splatk.outputs``), and the
@@ -306,7 +225,7 @@ def _load_checked_scene(scene_path, cfg: FitConfig):
 
 
 def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_changes: dict,
-         config_sources, on_start, on_step, should_stop, overwrite: bool = False) -> Path:
+         config_sources, on_start, on_step, should_stop, overwrite: bool = False) -> FitResult:
     """The fit itself, once the settings are checked: ``state`` is the checkpoint to resume."""
     resume = state is not None
     scene = _load_checked_scene(scene_path, cfg)
@@ -323,132 +242,128 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
             scene.train, holdout = split_holdout(scene.train, cfg.auto_budget.holdout_every)
         except ValueError as e:
             raise InputError(scene_path, str(e), "use a number for --budget") from None
-        auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.refine_stop)
-    selection_train = list(scene.train)  # --budget auto's optimiser views while choosing
+        auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.mcmc.refine_stop)
+    fit = FitRun(scene, cfg, auto, holdout, all_train)
     if resume and auto is not None and state.get("auto_budget") is not None:
         auto.load_state_dict(state["auto_budget"])
     if auto is not None and auto.refitting:  # resuming the refit: a fixed run at the chosen budget
         trainer = _refit_trainer(scene, all_train, cfg, auto.chosen)
     elif auto is not None and auto.current_short is not None:  # resuming a short selection run
-        trainer = _short_run_trainer(scene, selection_train, cfg, auto.current_short)
+        trainer = _short_run_trainer(scene, fit.selection_train, cfg, auto.current_short)
     else:
         torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
         model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
         trainer = Trainer(scene, model, cfg.train)
+    fit.trainer = trainer
     if resume:
-        if auto is not None and auto.holdout_returned and not auto.refitting and auto.current_short is None:
-            # the optimiser's view list (and its queue) included them
-            auto.return_holdout(trainer, holdout)
         trainer.load_state_dict(state["trainer"])
-        initial_psnr = state.get("initial_psnr")
+        fit.initial_psnr = state.get("initial_psnr")
         del state
-        _clean_resume_leftovers(out, trainer.it)
+        clean_resume_leftovers(out, trainer.it)
         if resume_changes:
-            _record_resume_changes(out, cfg, resume_changes, trainer.it)
-        return _train(scene_path, out, cfg, scene, fingerprint, trainer, auto, holdout, all_train,
-                      selection_train, initial_psnr, resume, on_start, on_step, should_stop)
+            record_resume_changes(out, cfg.to_dict(), resume_changes, trainer.it)
+        return fit.train(scene_path, out, fingerprint, resume, on_start, on_step, should_stop)
     with OutputDir(out, RUN_KIND, overwrite, inputs=[scene_path]):
-        _write_config(out, scene_path, cfg, config_sources or {})
-        initial_psnr = render_psnr(trainer.model, scene.test, scene.background, trainer.backend)
-        return _train(scene_path, out, cfg, scene, fingerprint, trainer, auto, holdout, all_train,
-                      selection_train, initial_psnr, resume, on_start, on_step, should_stop)
+        write_config(out, scene_path, cfg.to_dict(), config_sources or {})
+        fit.initial_psnr = render_psnr(trainer.model, scene.test, scene.background, trainer.backend)
+        return fit.train(scene_path, out, fingerprint, resume, on_start, on_step, should_stop)
 
 
-def _train(scene_path, out: Path, cfg: FitConfig, scene, fingerprint: str, trainer: Trainer, auto, holdout,
-           all_train, selection_train, initial_psnr, resume: bool, on_start, on_step, should_stop) -> Path:
-    ckpt_path = out / "checkpoints" / "last.pt"
-    spec = model_spec(trainer.model, cfg.kernel_options, _color_options(cfg))
-    meta = {
-        "scene": str(Path(scene_path).resolve()),
-        "downscale": cfg.downscale,
-        "test_every": cfg.test_every,
-        "background": list(scene.background),
-        "primitive": cfg.primitive,
-        "scene_fingerprint": fingerprint,
-    }
-    if on_start:
-        on_start({"scene": scene, "model": trainer.model, "iters": cfg.train.iters,
-                  "start_it": trainer.it, "backend": cfg.train.backend, "config": cfg})
+class FitRun:
+    """One fit in progress: the trainer whose model the run saves (``--budget auto``'s short
+    runs and refit replace it), that model's initial test PSNR, the auto budget's state, and
+    the run folder it writes (:class:`~splatk.stages.run_folder.RunFolder`)."""
 
-    saved_it = {"it": trainer.it if resume else None}
-    # the trainer whose model is saved: --budget auto's refit replaces the selection's
-    current = {"trainer": trainer, "initial_psnr": initial_psnr}
+    def __init__(self, scene, cfg: FitConfig, auto: AutoBudget | None, holdout: list, all_train: list):
+        self.scene, self.cfg, self.auto = scene, cfg, auto
+        self.holdout, self.all_train = holdout, all_train
+        self.selection_train = list(scene.train)  # --budget auto's optimiser views while choosing
+        self.trainer: Trainer | None = None
+        self.initial_psnr: float | None = None
+        self.folder: RunFolder | None = None
 
-    def checkpoint(tr: Trainer) -> None:
-        state = {"trainer": tr.state_dict(), "spec": spec, "meta": meta,
-                 "initial_psnr": current["initial_psnr"],
-                 "auto_budget": auto.state_dict() if auto is not None else None}
-        _save(lambda: atomic_torch_save(state, ckpt_path), ckpt_path, out, saved_it["it"])
-        saved_it["it"] = tr.it
+    def checkpoint(self, tr: Trainer) -> None:
+        self.folder.checkpoint(tr.it, {"trainer": tr.state_dict(), "initial_psnr": self.initial_psnr,
+                                       "auto_budget": self.auto.state_dict() if self.auto is not None else None})
 
-    log = open(out / "train_log.jsonl", "a")
-
-    def step(info: StepInfo) -> None:
-        if info.it % 100 == 0 or info.event:
-            log.write(json.dumps({"it": info.it, "loss": info.loss, "psnr": info.psnr,
-                                  "num": info.num_primitives, "elapsed": round(info.elapsed, 3),
-                                  "event": info.event}) + "\n")
-            log.flush()
-        if on_step:
-            on_step(info)
-
-    wall0 = time.time()
-    interrupted = False
-    def make_refit_trainer(budget: int) -> Trainer:
-        tr = _refit_trainer(scene, all_train, cfg, budget)
-        # the final model descends from this one, so its PSNR is the run's initial PSNR
-        current["trainer"] = tr
-        current["initial_psnr"] = render_psnr(tr.model, scene.test, scene.background, tr.backend)
+    def refit_trainer(self, budget: int) -> Trainer:
+        """--budget auto's refit; the final model descends from it, so its PSNR is the run's
+        initial PSNR."""
+        self.trainer = tr = _refit_trainer(self.scene, self.all_train, self.cfg, budget)
+        self.initial_psnr = render_psnr(tr.model, self.scene.test, self.scene.background, tr.backend)
         return tr
 
-    def make_short_trainer(budget: int) -> Trainer:
-        current["trainer"] = _short_run_trainer(scene, selection_train, cfg, budget)
-        return current["trainer"]
+    def short_trainer(self, budget: int) -> Trainer:
+        self.trainer = _short_run_trainer(self.scene, self.selection_train, self.cfg, budget)
+        return self.trainer
 
-    try:
+    def train(self, scene_path, out: Path, fingerprint: str, resume: bool, on_start, on_step,
+              should_stop) -> FitResult:
+        cfg, scene, auto = self.cfg, self.scene, self.auto
+        spec = model_spec(self.trainer.model, cfg.kernel_options, _color_options(cfg))
+        meta = {
+            "scene": str(Path(scene_path).resolve()),
+            "downscale": cfg.downscale,
+            "test_every": cfg.test_every,
+            "background": list(scene.background),
+            "primitive": cfg.primitive,
+            "scene_fingerprint": fingerprint,
+        }
+        if on_start:
+            on_start({"scene": scene, "model": self.trainer.model, "iters": cfg.train.iters,
+                      "start_it": self.trainer.it, "backend": cfg.train.backend, "config": cfg})
+        self.folder = folder = RunFolder(out, spec, meta, saved_it=self.trainer.it if resume else None)
+
+        def step(info: StepInfo) -> None:
+            folder.log_step(info)
+            if on_step:
+                on_step(info)
+
+        wall0 = time.time()
+        interrupted = False
         try:
-            if auto is not None:
-                auto.run(trainer, holdout, step, should_stop, checkpoint, cfg.checkpoint_every,
-                         make_refit_trainer=make_refit_trainer,
-                         make_short_trainer=make_short_trainer)
-            else:
-                trainer.run(step, should_stop, checkpoint, cfg.checkpoint_every)
-        except KeyboardInterrupt:
-            interrupted = True
-        except TrainingStalled as stalled:
-            # keep the last healthy state, not the one that could not get past this point
-            current["trainer"].restore_last_healthy()
-            checkpoint(current["trainer"])
-            raise stalled.at(out)
-        trainer = current["trainer"]
-        checkpoint(trainer)
-    finally:
-        log.close()
-    if interrupted:
-        raise KeyboardInterrupt
-    _save(lambda: save_model(trainer.model, out / "model.pt", spec, meta), out / "model.pt", out, saved_it["it"])
-    train_seconds = trainer.elapsed
-    if auto is not None and auto.refitting:  # the selection is part of what the run cost
-        train_seconds += auto.selection_seconds or 0.0
-    summary = {
-        "iterations": trainer.it,
-        "train_seconds": round(train_seconds, 2),
-        "wall_seconds_this_session": round(time.time() - wall0, 2),
-        "num_primitives": trainer.model.num_primitives,
-        "footprint_mb": trainer.model.footprint_bytes() / 2**20,
-        "kernel": cfg.kernel,
-        "primitive": cfg.primitive,
-        "color": cfg.color,
-        "backend": cfg.train.backend,
-        "events": trainer.events,
-        "initial_psnr": current["initial_psnr"],
-        "view_stride": cfg.view_stride,
-        "train_views": len(trainer.scene.train),
-    }
-    if auto is not None:
-        summary["auto_budget"] = auto.report(holdout)
-    (out / "fit.json").write_text(json.dumps(summary, indent=2))
-    return out
+            try:
+                if auto is not None:
+                    auto.run(self.trainer, self.holdout, step, should_stop, self.checkpoint, cfg.checkpoint_every,
+                             make_refit_trainer=self.refit_trainer, make_short_trainer=self.short_trainer)
+                else:
+                    self.trainer.run(step, should_stop, self.checkpoint, cfg.checkpoint_every)
+            except KeyboardInterrupt:
+                interrupted = True
+            except TrainingStalled as stalled:
+                # keep the last healthy state, not the one that could not get past this point
+                self.trainer.restore_last_healthy()
+                self.checkpoint(self.trainer)
+                raise stalled.at(out)
+            self.checkpoint(self.trainer)
+        finally:
+            folder.close_log()
+        if interrupted:
+            raise KeyboardInterrupt
+        trainer = self.trainer
+        folder.save_model(trainer.model)
+        train_seconds = trainer.elapsed
+        if auto is not None and auto.refitting:  # the selection is part of what the run cost
+            train_seconds += auto.selection_seconds or 0.0
+        summary = {
+            "iterations": trainer.it,
+            "train_seconds": round(train_seconds, 2),
+            "wall_seconds_this_session": round(time.time() - wall0, 2),
+            "num_primitives": trainer.model.num_primitives,
+            "footprint_mb": trainer.model.footprint_bytes() / 2**20,
+            "kernel": cfg.kernel,
+            "primitive": cfg.primitive,
+            "color": cfg.color,
+            "backend": cfg.train.backend,
+            "events": trainer.events,
+            "initial_psnr": self.initial_psnr,
+            "view_stride": cfg.view_stride,
+            "train_views": len(trainer.scene.train),
+        }
+        if auto is not None:
+            summary["auto_budget"] = auto.report(self.holdout)
+        folder.write_summary(summary)
+        return FitResult(out, summary)
 
 
 def _fixed_trainer(scene, views: list, cfg: FitConfig, **train: object) -> Trainer:
@@ -473,61 +388,9 @@ def _short_run_trainer(scene, views: list, cfg: FitConfig, budget: int) -> Train
     t, share = cfg.train, cfg.auto_budget.stage_share
     iters = t.iters if t.time_budget else max(1, round(share * t.iters))
     time_budget = share * t.time_budget if t.time_budget else None
-    refine_every = t.refine_every
+    refine_every = t.mcmc.refine_every
     if not t.time_budget:
-        growth_steps = math.ceil(math.log(4.0) / math.log(MCMCConfig.growth))  # a quarter -> all
+        growth_steps = math.ceil(math.log(4.0) / math.log(t.mcmc.growth))  # a quarter -> all
         refine_every = max(1, min(refine_every, int(iters / 2 / growth_steps)))
     return _fixed_trainer(scene, views, cfg, budget=budget, iters=iters, time_budget=time_budget,
-                          refine_every=refine_every)
-
-
-def _save(write: Callable[[], object], path: Path, out: Path, kept_it: int | None) -> None:
-    """Run an atomic write; a full disk or a permission problem becomes an InputError.
-
-    The atomic write leaves the previous file in place, so the message can say what survives.
-    """
-    try:
-        write()
-    except OSError as e:
-        kept = (f"the checkpoint of iteration {kept_it} is intact; " if kept_it is not None else "")
-        raise InputError(path, f"cannot write ({e.strerror or e})",
-                         f"free disk space or fix permissions; {kept}continue with `splatk fit --resume "
-                         f"--out {out}`") from None
-
-
-def _clean_resume_leftovers(out: Path, it: int) -> None:
-    """Before continuing at iteration ``it``: drop temp files of a write that was killed and the
-    log lines written after the checkpoint (they are about to be written again)."""
-    for tmp in (out / "checkpoints").glob("*.tmp"):
-        tmp.unlink(missing_ok=True)
-    for tmp in out.glob("model.pt.*.tmp"):
-        tmp.unlink(missing_ok=True)
-    log = out / "train_log.jsonl"
-    if log.is_file():
-        keep = []
-        for line in log.read_text().splitlines():
-            try:
-                if json.loads(line)["it"] <= it:
-                    keep.append(line)
-            except (ValueError, KeyError, TypeError):
-                continue  # a line cut off by the kill
-        log.write_text("".join(x + "\n" for x in keep))
-
-
-def _record_resume_changes(out: Path, cfg: FitConfig, changes: dict, it: int) -> None:
-    """config.yaml takes the settings a resume changed, and says so beside each."""
-    path = out / "config.yaml"
-    doc = yaml.safe_load(path.read_text())
-    doc["settings"] = cfg.to_dict()
-    for key, value in changes.items():
-        doc.setdefault("sources", {})[key.split(".")[-1]] = f"changed on resume at iteration {it}: {value}"
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
-
-
-def _write_config(out: Path, scene_path, cfg: FitConfig, sources: dict) -> None:
-    doc = {
-        "scene": str(Path(scene_path).resolve()),
-        "settings": cfg.to_dict(),
-        "sources": sources,
-    }
-    (out / "config.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+                          mcmc=replace(t.mcmc, refine_every=refine_every))

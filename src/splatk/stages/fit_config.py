@@ -18,8 +18,9 @@ import torch
 from ..errors import InputError
 from ..machine import memory_bytes
 from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
-from ..train.trainer import TrainConfig
+from ..train.trainer import MCMC_FIELDS, TrainConfig
 from .autobudget import AutoBudgetConfig
+from .run_length import run_fraction, scale_to_run_length
 
 PRIMITIVES = ("volumetric", "planar")
 
@@ -56,6 +57,11 @@ class FitConfig:
     threads: int = 0
     #: checkpoint every n iterations (and on Ctrl-C)
     checkpoint_every: int = 1000
+    #: runs shorter than 30k iterations: scale the step-count schedules tuned for 30k to the
+    #: run's length (:mod:`splatk.stages.run_length`)
+    scale_schedules: bool = True
+    #: ... and raise the learning rates tuned for 30k iterations (with scale_schedules only)
+    short_run_lrs: bool = True
     #: choose the budget from held-out train views (`--budget auto`); None: use train.budget
     auto_budget: AutoBudgetConfig | None = None
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -66,9 +72,9 @@ class FitConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "FitConfig":
         d = dict(d)
-        train = TrainConfig(**d.pop("train", {}))
+        train = TrainConfig.from_dict(d.pop("train", {}))
         if isinstance(d.get("auto_budget"), dict):
-            d["auto_budget"] = AutoBudgetConfig(**d["auto_budget"])
+            d["auto_budget"] = AutoBudgetConfig.from_dict(d["auto_budget"])
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
@@ -77,7 +83,8 @@ class FitConfig:
 
 
 _FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train", "auto_budget"}
-_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)}
+#: flat names of TrainConfig fields, its MCMC settings included (``refine_every``: train.mcmc)
+_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)} - {"mcmc"} | set(MCMC_FIELDS)
 #: flat option names besides FitConfig / TrainConfig fields
 EXTRA_OPTIONS = ("k", "weights", "kernel_weights", "budget_bytes", "kernel_options", "auto_budget", "name")
 
@@ -127,7 +134,9 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
     ``time_budget``, ``iters``, any FitConfig or TrainConfig field) -> (checked FitConfig, notes).
 
     ``None`` values mean "not given". ``base`` (default: the defaults) is the config the
-    options apply to. ``notes`` say how derived values (the budget from bytes) were found.
+    options apply to. A new config (no ``base``) is then scaled to its run length
+    (:func:`~splatk.stages.run_length.scale_to_run_length`; given options stay as given).
+    ``notes`` say how derived values (the budget from bytes, the scaled schedules) were found.
     Unknown names, unreadable values and values out of range (:func:`check_fit_config`) are
     InputErrors.
     """
@@ -136,6 +145,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
     opts = {k.replace("-", "_"): v for k, v in options.items() if v is not None or k == "weights"}
     cfg = FitConfig.from_dict(base.to_dict()) if base is not None else FitConfig()
     notes: dict = {}
+    given = set(opts)
     unknown = sorted(set(opts) - _FIT_FIELDS - _TRAIN_FIELDS - set(EXTRA_OPTIONS))
     if unknown:
         src = sources.get(unknown[0])
@@ -177,7 +187,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         if "iters" not in opts and cfg.train.time_budget is not None:
             cfg.train.iters = 10**9  # the clock decides (with iters too, whichever ends first)
     for key, value in opts.items():
-        target = cfg if key in _FIT_FIELDS else cfg.train
+        target = cfg if key in _FIT_FIELDS else cfg.train.mcmc if key in MCMC_FIELDS else cfg.train
         setattr(target, key, value)
     cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
     if budget_bytes is not None:
@@ -199,7 +209,11 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
     elif budget is not None:
         text = str(budget).strip().lower()
         if text.startswith("auto"):
-            cfg.auto_budget = AutoBudgetConfig(**(auto_options or {}))
+            try:
+                cfg.auto_budget = AutoBudgetConfig.from_dict(auto_options or {})
+            except (TypeError, ValueError) as e:
+                raise option_error("auto_budget", auto_options, str(e), "see AutoBudgetConfig in "
+                                   "splatk.stages.autobudget for the settings", sources.get("auto_budget")) from None
             ref = text[4:].lstrip(":")
             if ref:
                 cfg.train.budget = _read_count("budget", budget, ref, sources)
@@ -207,6 +221,11 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         else:
             cfg.train.budget = _read_count("budget", budget, budget, sources)
     check_fit_config(cfg, sources)
+    if base is None:
+        fraction = run_fraction(cfg)
+        scaled = scale_to_run_length(cfg, keep=given)
+        if scaled:
+            notes["scaled_schedules"] = {"factor": fraction, **scaled}
     return cfg, notes
 
 
@@ -298,12 +317,16 @@ RULES = [
     ("train.means_lr", "means_lr", float_range(0.0, None, lo_open=True)),
     ("train.means_lr_final", "means_lr_final", float_range(0.0, None, lo_open=True)),
     ("train.sh_degree_interval", "sh_degree_interval", int_range(1)),
-    ("train.refine_every", "refine_every", int_range(1)),
-    ("train.refine_start", "refine_start", int_range(0)),
-    ("train.refine_stop", "refine_stop", float_range(0.0, 1.0)),
-    ("train.noise_lr", "noise_lr", float_range(0.0)),
-    ("train.split_scales", "split_scales", choice("keep", "shrink")),
-    ("train.hold_growth", "hold_growth", BOOL),
+    ("train.mcmc.refine_every", "refine_every", int_range(1)),
+    ("train.mcmc.refine_start", "refine_start", int_range(0)),
+    ("train.mcmc.refine_stop", "refine_stop", float_range(0.0, 1.0)),
+    ("train.mcmc.noise_lr", "noise_lr", float_range(0.0)),
+    ("train.mcmc.split_scales", "split_scales", choice("keep", "shrink")),
+    ("train.mcmc.hold_growth", "hold_growth", BOOL),
+    ("train.mcmc.min_opacity", "min_opacity", float_range(0.0, 1.0, lo_open=True)),
+    ("train.mcmc.growth", "growth", float_range(1.0)),
+    ("scale_schedules", "scale_schedules", BOOL),
+    ("short_run_lrs", "short_run_lrs", BOOL),
     ("train.lr_scale", "lr_scale", float_range(0.0, None, lo_open=True)),
     ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, None, lo_open=True)),
     ("train.snapshot_every", "snapshot_every", int_range(1)),
@@ -399,9 +422,6 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
         if not valid(ab.holdout_every, int_range(2)):
             raise option_error("auto_budget.holdout_every", ab.holdout_every, "must be a whole number of at least 2",
                                 "give at least 2", sources.get("auto_budget"))
-        if ab.selection not in ("stages", "short_runs") or (ab.selection == "short_runs" and not ab.refit):
-            raise InputError(None, f"auto budget selection {ab.selection!r} with refit {ab.refit}",
-                             "use selection stages, or short_runs with refit true")
         if cfg.train.budget * ab.max_factor > cap:
             raise option_error("budget", f"auto:{cfg.train.budget}", f"may try {ab.max_factor:g}x the reference "
                                 f"budget, more than this machine's memory holds", f"use auto:N with N at most "

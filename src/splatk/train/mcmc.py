@@ -22,7 +22,8 @@ from .optim import PrimitiveAdam
 
 @dataclass
 class MCMCConfig:
-    cap_max: int = 100_000
+    """Density-control settings (``TrainConfig.mcmc``; the cap is the run's budget)."""
+
     refine_every: int = 100
     refine_start: int = 500
     #: refine until this fraction of training (DBS: 25k of 30k iterations)
@@ -62,11 +63,13 @@ def split_scale_factor(opacity: torch.Tensor, new_opacity: torch.Tensor, copies:
 class MCMCStrategy:
     name = "mcmc"
 
-    def __init__(self, config: MCMCConfig):
+    def __init__(self, config: MCMCConfig, cap_max: int = 100_000):
         # checked here, not at the first refine step hundreds of iterations into a run
         if config.split_scales not in ("keep", "shrink"):
             raise ValueError(f"split_scales must be keep or shrink, got {config.split_scales!r}")
         self.cfg = config
+        #: the most primitives growth may reach (the run's budget; --budget auto moves it)
+        self.cap_max = cap_max
         self.last_stats: dict = {}
 
     def is_refine_step(self, it: int, progress: float) -> bool:
@@ -142,7 +145,7 @@ class MCMCStrategy:
 
     def growth_count(self, n: int) -> int:
         """How many primitives a growth step adds to a model of ``n``."""
-        return max(0, min(self.cfg.cap_max, int(self.cfg.growth * n)) - n)
+        return max(0, min(self.cap_max, int(self.cfg.growth * n)) - n)
 
     def add(self, model, opt: PrimitiveAdam, generator=None) -> int:
         n_add = self.growth_count(model.num_primitives)

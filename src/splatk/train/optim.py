@@ -63,8 +63,8 @@ class PrimitiveAdam:
 
     @torch.no_grad()
     def keep_rows(self, keep: torch.Tensor) -> None:
-        """Keep only the rows where ``keep`` [N] is True in every per-primitive tensor, with their
-        Adam moments (pruning)."""
+        """Keep only the rows ``keep`` selects ([N] mask or indices) in every per-primitive tensor,
+        with their Adam moments (pruning, compaction)."""
         for g in self.opt.param_groups:
             old = g["params"][0]
             new = nn.Parameter(old.data[keep].clone())

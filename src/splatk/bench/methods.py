@@ -1,0 +1,144 @@
+"""The method grammar of `splatk bench`: methods as dicts of fit settings, grids of them,
+their ids (file names of results), and bench files.
+
+A method is a dict of fit settings (see :func:`fit_config_for`)::
+
+    {kernel: learned, k: 4, weights: none, color: sh, budget: 30000 | auto,
+     budget_bytes: 4MB, iters: 3000, time_budget: 600, name: my-id, ...FitConfig/TrainConfig fields}
+
+``primitive: planar`` fits 2D surfels (:class:`~splatk.models.planar.PlanarModel`) with the
+planar kernel of that name; ``k`` is volumetric-only and is ignored there.
+"""
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import re
+from pathlib import Path
+
+import yaml
+
+from ..errors import InputError
+from ..stages.fit_config import FitConfig, check_fit_config, fit_config_from_options, parse_bytes
+
+#: keys a method may have besides FitConfig / TrainConfig fields
+METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options")
+
+
+def expand_grid(grid: dict) -> list[dict]:
+    """Cartesian product of ``{key: [values]}``; a dict value is merged into the method instead
+    of being assigned to the key (``kernel: [gaussian, {kernel: learned, k: 4}]``)."""
+    keys = list(grid)
+    lists = [v if isinstance(v, list) else [v] for v in grid.values()]
+    methods = []
+    for combo in itertools.product(*lists):
+        m: dict = {}
+        for key, value in zip(keys, combo):
+            if isinstance(value, dict):
+                m.update(value)
+            else:
+                m[key] = value
+        methods.append(m)
+    return methods
+
+
+def method_id(method: dict, defaults: dict | None = None) -> str:
+    """A readable, file-name-safe id that changes whenever the method's settings do.
+
+    Of ``defaults`` (the bench's shared settings) only the primitive type counts: a preset may
+    set ``primitive: planar`` for every method, and a planar result must never take the file
+    name of a volumetric one (ids of planar runs start with ``planar-``).
+    """
+    if method.get("name"):
+        return re.sub(r"[^A-Za-z0-9._+-]", "_", str(method["name"]))
+    m = dict(method)
+    kernel = m.pop("kernel", "gaussian")
+    planar = m.pop("primitive", (defaults or {}).get("primitive", "volumetric")) == "planar"
+    # a planar run never shares an id (and so a result file) with a volumetric one
+    parts = ["planar", kernel] if planar else [kernel]
+    if planar:
+        m.pop("k", None)  # volumetric-only (fit_config_for ignores it too)
+    if kernel == "learned":
+        if not planar:
+            parts.append(f"k{m.pop('k', 2)}")
+        w = m.pop("weights", None)
+        if w is not None and str(w).lower() == "none":
+            parts.append("nopre")
+        elif w is not None:
+            parts.append("w" + _short_hash(w))
+    else:
+        m.pop("k", None)
+        m.pop("weights", None)
+    parts.append(m.pop("color", "sh"))
+    if "budget_bytes" in m:
+        parts.append(f"B{_human_bytes(parse_bytes(m.pop('budget_bytes')))}")
+        m.pop("budget", None)
+    elif "budget" in m:
+        b = m.pop("budget")
+        parts.append("bauto" if str(b).lower() == "auto" else f"b{int(float(b))}")
+    if "iters" in m:
+        parts.append(f"i{int(m.pop('iters'))}")
+    if m.get("time_budget") is not None:
+        parts.append(f"t{_num(m.pop('time_budget'))}s")
+    m.pop("time_budget", None)
+    if m:
+        parts.append(_short_hash(m))
+    return "-".join(parts)
+
+
+def _short_hash(obj) -> str:
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:6]
+
+
+def _num(x) -> str:
+    x = float(x)
+    return str(int(x)) if x == int(x) else f"{x:g}"
+
+
+def _human_bytes(n: int) -> str:
+    for unit, size in (("G", 2**30), ("M", 2**20), ("K", 2**10)):
+        if n >= size and n % (size // 16 or 1) == 0:
+            return f"{_num(n / size)}{unit}"
+    return str(n)
+
+
+def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: bool = True,
+                   scale_lrs: bool = True) -> tuple[FitConfig, dict]:
+    """Resolve a method (over ``defaults``) into a checked FitConfig, as `splatk fit` would
+    with the same options (:func:`~splatk.stages.fit_config.fit_config_from_options`).
+
+    Returns (config, notes): notes say how the budget and schedules were derived.
+    """
+    spec = {**(defaults or {}), **method}
+    if "budget_bytes" in method:
+        spec.pop("budget", None)  # the method's byte budget beats a default count
+    # the bench's switches, unless the method sets its own; the translator scales short runs
+    # as it does for `splatk fit` (settings the method gives stay as given)
+    options = {"scale_schedules": scale_schedules, "short_run_lrs": scale_lrs, **spec}
+    cfg, notes = fit_config_from_options(options, {k: "bench method" for k in options})
+    check_fit_config(cfg, "bench method")
+    return cfg, notes
+
+
+def load_bench_file(path: str | Path) -> dict:
+    """A bench YAML: ``defaults``, ``methods`` and/or ``grid``, optional ``scenes``,
+    ``metrics``, ``lpips_net``, ``scale_schedules`` and a ``stability`` section."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise InputError(path, f"invalid YAML ({e})") from e
+    if not isinstance(data, dict):
+        raise InputError(path, "a bench file is a mapping (defaults, methods, grid, scenes, stability)")
+    known = {"defaults", "methods", "grid", "scenes", "metrics", "lpips_net", "scale_schedules", "stability"}
+    unknown = set(data) - known
+    if unknown:
+        raise InputError(path, f"unknown keys {', '.join(sorted(unknown))}", f"use {', '.join(sorted(known))}")
+    methods = list(data.get("methods") or [])
+    if data.get("grid"):
+        methods += expand_grid(data["grid"])
+    data["methods"] = methods
+    if data.get("scenes"):
+        data["scenes"] = [str((path.parent / s) if not Path(s).is_absolute() else s) for s in data["scenes"]]
+    return data

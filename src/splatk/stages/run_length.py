@@ -1,0 +1,110 @@
+"""Runs shorter than the paper's 30k iterations: the step-count schedules and the learning rates
+tuned for 30k, scaled to the run's length.
+
+:func:`scale_to_run_length` is the one step the fit's settings go through
+(:func:`~splatk.stages.fit_config.fit_config_from_options` applies it to every new run, so
+`splatk fit`, `splatk bench` and a Python caller train alike); ``FitConfig.scale_schedules`` and
+``FitConfig.short_run_lrs`` switch its two parts, and config.yaml records both. A kernel scales
+its own options (:meth:`~splatk.kernels.base.Kernel.scale_to_run`).
+"""
+from __future__ import annotations
+
+import math
+
+from ..train.mcmc import MCMCConfig
+
+#: the paper's run length; the step-count schedules below are tuned for it
+FULL_ITERS = 30_000
+#: step-count schedules at 30k iterations: (value, smallest value when scaled to a shorter run)
+RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
+#: short runs raise MCMC's position noise (DBS's noise_lr, tuned for 30k iterations) by
+#: 30k / iters, at most this much
+NOISE_LR_MULT_MAX = 10.0
+#: short runs raise the log-scale LR by sqrt(30k / iters), at most this much
+SCALES_LR_MULT_MAX = 10.0
+
+
+def run_fraction(cfg) -> float | None:
+    """(``cfg``: a :class:`~splatk.stages.fit_config.FitConfig`, as below) iters / 30k for a run shorter than 30k iterations; None when nothing scales (a full
+    run, or a time budget: those schedules follow progress)."""
+    t = cfg.train
+    if t.time_budget is not None or t.iters >= FULL_ITERS:
+        return None
+    return t.iters / FULL_ITERS
+
+
+def _kernel_class(cfg):
+    from ..kernels import KERNELS
+    from ..kernels.planar import PLANAR_KERNELS
+
+    return (PLANAR_KERNELS if cfg.primitive == "planar" else KERNELS).get(cfg.kernel)
+
+
+def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
+    """Shrink the step-count schedules of a run shorter than 30k iterations in proportion
+    (gsplat's ``steps_scaler`` idea); returns {setting: new value} (empty when nothing changed).
+
+    Unscaled, a 2000-iteration run would refine only every 100 steps, so MCMC's 5% growth per
+    refine could not reach the budget (a quarter-budget random init ends near 43% of it), raise
+    the SH degree twice, and leave a learned kernel's networks frozen for the whole run.
+    MCMC's position noise grows by 30k / iters (at most x10): the means get that many fewer
+    gradient steps, and the noise is what moves near-transparent primitives to where they are
+    needed (benchmarks/README.md, "MCMC noise in short runs": fox, random init, 2000 iterations,
+    +2.3 dB over two seeds). Settings named in ``keep`` (set explicitly by the user) and
+    explicit kernel options stay as given. Learning rates are left to :func:`boost_short_run_lrs`.
+    """
+    s = run_fraction(cfg)
+    if s is None:
+        return {}
+    t = cfg.train
+    scaled = {}
+    for key, (full, lo) in RUN_LENGTH_SCHEDULES.items():
+        if key not in keep:
+            target = t if key == "sh_degree_interval" else t.mcmc
+            setattr(target, key, max(lo, round(full * s)))
+            scaled[key] = getattr(target, key)
+    if "noise_lr" not in keep:
+        # from the 30k default, not the current value, so scaling twice changes nothing
+        t.mcmc.noise_lr = scaled["noise_lr"] = MCMCConfig.noise_lr * min(NOISE_LR_MULT_MAX, 1 / s)
+    kernel = _kernel_class(cfg)
+    if kernel is not None:
+        changes = kernel.scale_to_run(cfg.kernel_options, s, keep, schedules=True, lrs=False)
+        cfg.kernel_options.update(changes)
+        scaled.update(changes)
+    return scaled
+
+
+def boost_short_run_lrs(cfg, keep: frozenset | set = frozenset()) -> dict:
+    """Raise the learning rates tuned for 30k iterations on a shorter run; returns what changed.
+
+    On for every short run unless told not to (``--no-short-run-lrs``, ``short_run_lrs: false``
+    as in the demo preset): 2000 iterations, 50k Gaussians, fox at 1/16: 23.79 dB without,
+    29.77 with; lego at 1/8: 31.60 without, 31.22 with. The trainer's collapse checks keep LR x10
+    on top of it above the initial PSNR in the stability matrix (docs/measurements.md,
+    "Stability"). Settings named in ``keep`` and explicit kernel options stay as given.
+    """
+    s = run_fraction(cfg)
+    if s is None:
+        return {}
+    boosted = {}
+    if "scales_lr_mult" not in keep:
+        # the log-scale LR is tuned for 30k iterations; short runs starve it (fox, random
+        # init, 2000 iterations: learned k=4 13.9 -> 21.7 dB at x3, gaussian 20.9 -> 21.6)
+        cfg.train.scales_lr_mult = boosted["scales_lr_mult"] = round(min(SCALES_LR_MULT_MAX, math.sqrt(1 / s)), 3)
+    kernel = _kernel_class(cfg)
+    if kernel is not None:
+        changes = kernel.scale_to_run(cfg.kernel_options, s, keep, schedules=False, lrs=True)
+        cfg.kernel_options.update(changes)
+        boosted.update(changes)
+    return boosted
+
+
+def scale_to_run_length(cfg, keep: frozenset | set = frozenset()) -> dict:
+    """Both steps, as ``cfg.scale_schedules`` and ``cfg.short_run_lrs`` say (the LRs only with
+    the schedules); returns {setting: new value}."""
+    if not cfg.scale_schedules:
+        return {}
+    changed = scale_schedules_to_run(cfg, keep)
+    if cfg.short_run_lrs:
+        changed.update(boost_short_run_lrs(cfg, keep))
+    return changed
