@@ -35,9 +35,8 @@ def run_fraction(cfg) -> float | None:
 
 def _kernel_class(cfg):
     from ..kernels import KERNELS
-    from ..kernels.planar import PLANAR_KERNELS
 
-    return (PLANAR_KERNELS if cfg.primitive == "planar" else KERNELS).get(cfg.kernel)
+    return KERNELS.get((cfg.primitive, cfg.kernel))
 
 
 def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
