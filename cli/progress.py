@@ -62,9 +62,10 @@ class PlainProgress:
         rate = (done - task["start"]) / elapsed if elapsed > 0 else 0.0
         share = f" ({100 * done / total:.0f}%)" if total else ""
         eta = _clock_time((total - done) / rate) if total and rate > 0 else "?"
-        line = (f"{task['name']} {int(done)}/{int(total) if total else '?'}{share}  "
-                f"{self.fields.format(**task['fields'])}  {rate:.1f} it/s  "
-                f"elapsed {_clock_time(elapsed)}  ETA {eta}")
+        parts = [f"{task['name']} {int(done)}/{int(total) if total else '?'}{share}",
+                 self.fields.format(**task["fields"]), f"{rate:.1f} it/s", f"elapsed {_clock_time(elapsed)}",
+                 f"ETA {eta}"]
+        line = "  ".join(p for p in parts if p)
         # written, not console.print: rich would wrap the line at its guess of a width
         print(line, file=self.console.file, flush=True)
         task["printed_at"], task["printed"] = now, done
@@ -104,4 +105,14 @@ def image_progress(console: Console, kernel: str, log_every: float = DEFAULT_LOG
         TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),
         TextColumn("loss {task.fields[loss]:.5f}"), TextColumn("PSNR {task.fields[psnr]:5.2f}"),
         TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console,
+    )
+
+
+def frames_progress(console: Console, log_every: float = DEFAULT_LOG_EVERY) -> Progress | PlainProgress:
+    """`splatk render`'s display: frames rendered of the video's."""
+    if not console.is_terminal:
+        return PlainProgress(console, "", every=log_every)
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("ETA"), TimeRemainingColumn(), console=console,
     )
