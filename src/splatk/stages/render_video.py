@@ -73,7 +73,7 @@ def render_video(run: str | Path, out: str | Path, cfg: VideoConfig = VideoConfi
     dev = resolve_device(cfg.device, cfg.backend)
     renderer = backends.get(cfg.backend, dev)
     model = model.to(dev)
-    bg = torch.tensor(_background(meta, scene_path), dtype=torch.float32, device=dev)
+    bg = torch.tensor(run_background(meta, scene_path), dtype=torch.float32, device=dev)
 
     from imageio_ffmpeg import write_frames
 
@@ -119,7 +119,7 @@ def _path_cameras(cfg: VideoConfig, meta: dict, scene_path) -> list[Camera]:
                              f"use one of {', '.join(PATHS)} or a .json file of cameras")
         cams = cameras_from_json(path)
         return cams if cfg.frames in (None, len(cams)) else interpolate_cameras(cams, cfg.frames)
-    scene = _scene(meta, scene_path)
+    scene = run_scene(meta, scene_path)
     if cfg.path == "test":
         if not scene.test:
             raise InputError(scene.root, "the scene has no test views", "use --path orbit or spiral")
@@ -132,7 +132,8 @@ def _path_cameras(cfg: VideoConfig, meta: dict, scene_path) -> list[Camera]:
     return make(scene.train, cfg.frames or 120)
 
 
-def _scene(meta: dict, scene_path):
+def run_scene(meta: dict, scene_path):
+    """The cameras (no images) of the scene a run was fitted on, as the run loaded it."""
     scene_path = scene_path or meta.get("scene")
     if not scene_path or not Path(scene_path).exists():
         raise InputError(scene_path, "scene folder of this run not found", "pass --scene, or a JSON path file")
@@ -141,10 +142,11 @@ def _scene(meta: dict, scene_path):
                       load_images=False)
 
 
-def _background(meta: dict, scene_path) -> tuple[float, float, float]:
+def run_background(meta: dict, scene_path) -> tuple[float, float, float]:
+    """The RGB background the run was trained and is evaluated on."""
     if meta.get("background"):
         return tuple(meta["background"])
-    return tuple(_scene(meta, scene_path).background)
+    return tuple(run_scene(meta, scene_path).background)
 
 
 def _resized(cam: Camera, width: int, height: int) -> Camera:
