@@ -5,7 +5,6 @@ import signal
 from pathlib import Path
 
 import click
-from rich.console import Console
 
 from splatk.backends import backend_names
 from splatk.kernels import KERNELS
@@ -14,7 +13,7 @@ from splatk.stages.fit import boost_short_run_lrs, run_fit, scale_schedules_to_r
 from splatk.stages.fit_config import PRIMITIVES, fit_config_from_options
 
 from .common import load_preset, resolve_options
-from .progress import DEFAULT_LOG_EVERY, training_progress
+from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 
 #: options that steer how the command line builds the config, not settings of the run
 _CLI_ONLY = ("scale_schedules", "short_run_lrs")
@@ -93,7 +92,7 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
                 changed.update(boost_short_run_lrs(cfg))
         for key, value in changed.items():
             sources[key] = f"scaled to the run length ({cfg.train.iters} of 30000 iterations): {value}"
-    console = Console(stderr=True)
+    console = stderr_console()
     progress = None if quiet else training_progress(console, log_every)
     task = {}
 

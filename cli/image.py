@@ -5,12 +5,11 @@ import json
 from pathlib import Path
 
 import click
-from rich.console import Console
 
 from splatk.models.image2d import BACKENDS, KERNELS
 from splatk.stages.image_fit import ImageFitConfig, run_image_fit
 
-from .progress import DEFAULT_LOG_EVERY, image_progress
+from .progress import DEFAULT_LOG_EVERY, image_progress, stderr_console
 
 _D = ImageFitConfig()
 
@@ -72,7 +71,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
                          shapes=shapes, backend=backend, device=device, lpips=not no_lpips)
-    console = Console(stderr=True)
+    console = stderr_console()
     progress = None if quiet else image_progress(console, kernel, log_every)
     task = {}
 

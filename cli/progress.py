@@ -71,6 +71,15 @@ class PlainProgress:
         task["printed_at"], task["printed"] = now, done
 
 
+def stderr_console() -> Console:
+    """The console for a command's messages and progress; in a log, long lines stay whole (rich
+    would wrap them at 80 columns there)."""
+    console = Console(stderr=True)
+    if not console.is_terminal:
+        console.soft_wrap = True
+    return console
+
+
 def _clock_time(seconds: float) -> str:
     seconds = max(0, int(round(seconds)))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

@@ -5,12 +5,11 @@ import re
 from pathlib import Path
 
 import click
-from rich.console import Console
 
 from splatk.backends import backend_names
 from splatk.stages.render_video import PATHS, VideoConfig, render_video
 
-from .progress import DEFAULT_LOG_EVERY, frames_progress
+from .progress import DEFAULT_LOG_EVERY, frames_progress, stderr_console
 
 _D = VideoConfig()
 
@@ -52,7 +51,7 @@ def _size(ctx, param, value):
 def command(run, out, path_, frames, size, fps, crf, backend, device, scene, overwrite, quiet, log_every):
     """Render RUN along a camera path into an H.264 MP4 video."""
     cfg = VideoConfig(path=path_, frames=frames, size=size, fps=fps, crf=crf, backend=backend, device=device)
-    console = Console(stderr=True)
+    console = stderr_console()
     progress = None if quiet else frames_progress(console, log_every)
     task = {}
 

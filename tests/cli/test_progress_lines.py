@@ -81,6 +81,9 @@ def test_fit_logs_plain_progress_lines_to_a_pipe(tmp_path):
     assert all(int(m.group(2)) == 300 for m in matches)
     assert any(m.group(3) != "?" for m in matches[:-1]), "no ETA while running"
     assert (tmp_path / "run" / "model.pt").is_file()
+    # messages stay one line each in a log (rich wraps at 80 columns unless told otherwise)
+    (start,) = [ln for ln in res.stderr.splitlines() if ln.startswith("splatk fit ")]
+    assert start.endswith("kernel gaussian, backend torch"), start
 
 
 def test_image_logs_plain_progress_lines(tmp_path):
