@@ -125,3 +125,13 @@ def frames_progress(console: Console, log_every: float = DEFAULT_LOG_EVERY) -> P
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
         TextColumn("ETA"), TimeRemainingColumn(), console=console,
     )
+
+
+def pretrain_progress(console: Console, target: str, log_every: float = DEFAULT_LOG_EVERY) -> Progress | PlainProgress:
+    """`splatk pretrain`'s display; fields ``target`` and ``loss``."""
+    if not console.is_terminal:
+        return PlainProgress(console, "{target}  loss {loss:.4f}", every=log_every)
+    return Progress(
+        TextColumn("[bold]pretrain {task.fields[target]}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]:.4f}"), TimeElapsedColumn(), console=console,
+    )

@@ -98,3 +98,15 @@ def test_image_logs_plain_progress_lines(tmp_path):
     assert all(re.match(r"^image \d+/20 \(\d+%\)  loss \d+\.\d{5}  PSNR -?\d+\.\d\d  \d+\.\d it/s  "
                         r"elapsed \d+:\d\d:\d\d  ETA (\d+:\d\d:\d\d|\?)$", ln) for ln in lines), lines
     assert lines[-1].startswith("image 20/20")
+
+
+def test_pretrain_logs_plain_progress_lines(tmp_path):
+    res = CliRunner().invoke(cli, ["pretrain", "--kind", "planar", "--out", str(tmp_path / "k.pt"), "--steps", "20",
+                                   "--log-every", "0"])
+    assert res.exit_code == 0, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("pretrain ")]
+    assert lines and "\x1b" not in res.stderr
+    assert all(re.match(r"^pretrain \d+/\d+ \(\d+%\)  surfel  loss \d+\.\d{4}  \d+\.\d it/s  "
+                        r"elapsed \d+:\d\d:\d\d  ETA (\d+:\d\d:\d\d|\?)$", ln) for ln in lines), lines
+    total = lines[-1].split()[1].split("/")[1]
+    assert lines[-1].startswith(f"pretrain {total}/{total} (100%)")
