@@ -10,7 +10,19 @@ from click.core import ParameterSource
 
 from splatk.errors import InputError
 
-PRESET_DIRS = [Path(__file__).resolve().parent.parent / "presets"]
+
+def _preset_dirs() -> list[Path]:
+    """Where named presets live: ``splatk_cli/presets`` in a wheel (pyproject.toml maps the
+    top-level ``presets/`` there), the repository's ``presets/`` in a source tree or an
+    editable install."""
+    here = Path(__file__).resolve().parent
+    dirs = [here / "presets"]
+    if (here.parent / "pyproject.toml").is_file():  # a source tree, not site-packages
+        dirs.append(here.parent / "presets")
+    return [d for d in dirs if d.is_dir()]
+
+
+PRESET_DIRS = _preset_dirs()
 
 
 def find_preset(name: str) -> Path:

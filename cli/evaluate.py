@@ -8,6 +8,7 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from splatk.metrics.lpips import require_lpips
 from splatk.stages.evaluate import run_eval
 
 
@@ -28,6 +29,8 @@ def command(run, metrics, lpips_net, backend, device, scene, split, save_renders
     bad = [m for m in names if m not in ("psnr", "ssim", "lpips")]
     if bad:
         raise click.BadParameter(f"unknown metric(s): {', '.join(bad)}", param_hint="--metrics")
+    if "lpips" in names:
+        require_lpips(lpips_net)  # asked for by name: a table without it is not an answer
     res = run_eval(run, names, lpips_net=lpips_net, backend=backend, scene_path=scene, split=split,
                    save_renders=save_renders, device=device)
     console = Console(stderr=True)

@@ -5,7 +5,6 @@ import signal
 from pathlib import Path
 
 import click
-from rich.console import Console
 
 from splatk.backends import backend_names
 from splatk.kernels import kernel_names
@@ -14,7 +13,7 @@ from splatk.stages.fit import run_fit
 from splatk.stages.fit_config import PRIMITIVES, fit_config_from_options
 
 from .common import load_preset, resolve_options
-from .progress import training_progress
+from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 
 
 @click.command("fit")
@@ -58,9 +57,19 @@ from .progress import training_progress
               help="Replace --out if it is a run folder splatk wrote (never any other folder; not read from "
                    "the environment).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--log-every", type=click.FloatRange(min=0), default=DEFAULT_LOG_EVERY, show_default=True,
+              metavar="SECONDS", help="When stderr is not a terminal (a log file, a batch job, CI): print a plain "
+              "progress line (iteration/total, loss, PSNR, primitives, it/s, ETA) this often instead of the bar.")
 @click.pass_context
-def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
-    """Reconstruct SCENE (COLMAP sparse/0 + images/, or transforms*.json) into RUN."""
+def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts):
+    """Reconstruct SCENE (COLMAP sparse/0 + images/, or transforms*.json) into RUN.
+
+    RUN/train_log.jsonl gets a JSON line every 100 iterations and at every training event, with
+    the fields it (iteration), loss (training loss), psnr (PSNR in dB of that iteration's training
+    view), num (primitives), elapsed (training seconds so far, resumed runs included) and event
+    (null, or a message: a rollback and its halved step size, the loss check turned off, MCMC
+    growth held).
+    """
     if scene is None and not resume:
         raise click.UsageError("SCENE is required (unless --resume)")
     preset_values, preset_path = load_preset(preset)
@@ -75,8 +84,8 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, **opts):
         changed = {k: v for k, v in notes.get("scaled_schedules", {}).items() if k != "factor"}
         for key, value in changed.items():
             sources[key] = f"scaled to the run length ({cfg.train.iters} of 30000 iterations): {value}"
-    console = Console(stderr=True)
-    progress = None if quiet else training_progress(console)
+    console = stderr_console()
+    progress = None if quiet else training_progress(console, log_every)
     task = {}
 
     def on_start(info):

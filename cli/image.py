@@ -5,14 +5,13 @@ import json
 from pathlib import Path
 
 import click
-from rich.console import Console
-from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                           TimeRemainingColumn)
 
 from splatk.image.fit import ImageFitConfig
 from splatk.image.kernels import KERNELS
 from splatk.image.model import BACKENDS
 from splatk.stages.image_fit import run_image_fit
+
+from .progress import DEFAULT_LOG_EVERY, image_progress, stderr_console
 
 _D = ImageFitConfig()
 
@@ -51,8 +50,11 @@ _D = ImageFitConfig()
               help="Replace --out if it holds an earlier `splatk image` result (never any other folder; not read "
                    "from the environment). Otherwise --out must be new or empty.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--log-every", type=click.FloatRange(min=0), default=DEFAULT_LOG_EVERY, show_default=True,
+              metavar="SECONDS", help="When stderr is not a terminal: print a plain progress line this often "
+              "instead of the bar.")
 def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
-            exact, backend, device, no_lpips, overwrite, quiet):
+            exact, backend, device, no_lpips, overwrite, quiet, log_every):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
     The image is the plain sum of the splats (GaussianImage style); see
@@ -71,12 +73,8 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
     cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
                          shapes=shapes, backend=backend, device=device, lpips=not no_lpips)
-    console = Console(stderr=True)
-    progress = None if quiet else Progress(
-        TextColumn(f"[bold]image {kernel}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("loss {task.fields[loss]:.5f}"), TextColumn("PSNR {task.fields[psnr]:5.2f}"),
-        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console,
-    )
+    console = stderr_console()
+    progress = None if quiet else image_progress(console, kernel, log_every)
     task = {}
 
     def on_step(step, total, loss, psnr):

@@ -4,10 +4,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
 from splatk.stages.pretrain import TARGETS, PretrainConfig, run_pretrain
+
+from .progress import DEFAULT_LOG_EVERY, pretrain_progress, stderr_console
 
 
 @click.command("pretrain")
@@ -28,8 +27,11 @@ from splatk.stages.pretrain import TARGETS, PretrainConfig, run_pretrain
 @click.option("--dec-width", type=click.IntRange(1, 256), help="Volumetric: width of Phi_dec. [default: 4]")
 @click.option("--overwrite", is_flag=True, allow_from_autoenv=False, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--log-every", type=click.FloatRange(min=0), default=DEFAULT_LOG_EVERY, show_default=True,
+              metavar="SECONDS", help="When stderr is not a terminal: print a plain progress line this often "
+              "instead of the bar.")
 def command(kind, target, out, steps, seed, proj_inputs, latent_dim, latent2d_dim, proj_width, dec_width,
-            overwrite, quiet):
+            overwrite, quiet, log_every):
     """Fit the learned kernel's networks to a target profile (paper Sec. 4.5).
 
     Use the result with `splatk fit --kernel learned --kernel-weights OUT`; the fit takes the
@@ -41,11 +43,8 @@ def command(kind, target, out, steps, seed, proj_inputs, latent_dim, latent2d_di
     if arch and kind == "planar":
         raise click.UsageError("--proj-inputs, --latent-dim, --latent2d-dim, --proj-width and --dec-width "
                                "shape the volumetric kernel's networks only")
-    console = Console(stderr=True)
-    progress = None if quiet else Progress(
-        TextColumn("[bold]pretrain {task.fields[target]}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("loss {task.fields[loss]:.4f}"), TimeElapsedColumn(), console=console,
-    )
+    console = stderr_console()
+    progress = None if quiet else pretrain_progress(console, target, log_every)
     task = {}
 
     def on_step(step, total, loss):

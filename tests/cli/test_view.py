@@ -1,0 +1,123 @@
+"""`splatk view RUN`: frames drawn by splatk's engine exactly as `eval` draws the views, served
+by viser over HTTP; without viser, one line naming the install command."""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from splatk import backends
+from splatk.data import load_scene
+from splatk.data.synthetic import make_demo_scene
+from splatk.models.io import load_model
+from splatk.stages.fit import FitConfig, run_fit
+from splatk.stages.view import RunView
+from splatk.train.trainer import TrainConfig
+from splatk_cli.main import cli
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("view")
+    scene = make_demo_scene(tmp / "scene", num_views=16, size=32)
+    cfg = FitConfig(sh_degree=1, backend="torch", threads=1,
+                    train=TrainConfig(iters=40, budget=300, init="random", backend="torch"))
+    return run_fit(scene, tmp / "run", cfg)
+
+
+class FakeClient:
+    """What `draw` reads of a viser client: its camera, and where the image goes."""
+
+    def __init__(self, wxyz, position, fov, width, height):
+        self.camera = SimpleNamespace(wxyz=wxyz, position=position, fov=fov, image_width=width, image_height=height)
+        self.images = []
+        self.scene = SimpleNamespace(set_background_image=lambda image, **kw: self.images.append(image))
+
+
+def _client_at(cam, width=None, height=None):
+    from viser import transforms
+
+    R_c2w = cam.world_to_cam[:3, :3].double().T.numpy()
+    return FakeClient(transforms.SO3.from_matrix(R_c2w).wxyz, cam.center.double().numpy(),
+                      2 * math.atan(cam.height / (2 * cam.fy)), width or cam.width, height or cam.height)
+
+
+def test_the_viewer_draws_a_view_as_eval_does(run):
+    pytest.importorskip("viser")
+    from splatk_cli.view import draw
+
+    model, meta = load_model(run / "model.pt")
+    scene = load_scene(meta["scene"], test_every=meta["test_every"], background=tuple(meta["background"]))
+    cam = scene.test[0]
+    assert (cam.fx, cam.cx, cam.cy) == (cam.fy, cam.width / 2, cam.height / 2)  # what a viser camera can express
+    client = _client_at(cam)
+    draw(client, RunView(run, backend="torch"), max_size=960)
+    (image,) = client.images
+    with torch.no_grad():
+        ref = model.render(cam, torch.tensor(scene.background), backend=backends.get("torch", "cpu")).image
+    ref = (ref.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    assert image.shape == ref.shape == (32, 32, 3)
+    assert np.abs(image.astype(int) - ref.astype(int)).max() <= 1
+    assert float(image.astype(float).std()) > 10  # the scene, not the background
+
+
+def test_the_image_is_capped_at_max_size(run):
+    pytest.importorskip("viser")
+    from splatk_cli.view import draw
+
+    model, meta = load_model(run / "model.pt")
+    client = _client_at(load_scene(meta["scene"], load_images=False).train[0], width=1000, height=500)
+    draw(client, RunView(run, backend="torch"), max_size=64)
+    assert client.images[0].shape == (32, 64, 3)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_serves_the_viewer_and_stops_on_ctrl_c(run):
+    pytest.importorskip("viser")
+    port = _free_port()
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "splatk_cli.main", "view", str(run), "--port", str(port),
+                             "--host", "127.0.0.1", "--backend", "torch"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline, page = time.time() + 120, None
+        while time.time() < deadline and proc.poll() is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                    page = r.read().decode(errors="replace")
+                break
+            except OSError:
+                time.sleep(0.5)
+        assert page is not None and "<html" in page.lower(), proc.stderr.read() if proc.poll() is not None else ""
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err
+        assert f"http://127.0.0.1:{port}" in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+def test_without_viser_one_line_names_the_install(run, monkeypatch):
+    monkeypatch.setitem(sys.modules, "viser", None)  # `import viser` raises ImportError
+    res = CliRunner().invoke(cli, ["view", str(run)], catch_exceptions=False)
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'pip install "splatk[view]"' in lines[0], res.stderr
