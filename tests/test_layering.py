@@ -112,3 +112,13 @@ def _long_modules() -> dict[str, int]:
 
 def test_no_module_over_500_lines():
     assert not _long_modules(), _long_modules()
+
+
+def test_every_package_ships_in_the_wheel():
+    """pyproject.toml lists packages explicitly: a new package folder must be listed, or a wheel
+    install lacks it."""
+    import tomllib
+
+    listed = set(tomllib.loads((SRC.parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(SRC.parent).parts) for p in SRC.rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
