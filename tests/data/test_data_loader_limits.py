@@ -277,3 +277,13 @@ def test_fit_refuses_with_one_line(case, demo_dir, tmp_path):
     m = fit_error(root, tmp_path / "run")
     assert Path(m["where"]).name == named.name
     assert not (tmp_path / "run").exists()
+
+
+def test_colmap_image_name_not_utf8(tiny_colmap):
+    """Found by tests/fuzz: pycolmap raises UnicodeDecodeError when such a name is read."""
+    root = tiny_colmap()
+    f = root / "sparse" / "0" / "images.bin"
+    data = f.read_bytes()
+    f.write_bytes(data.replace(b"img_02.png", b"img_\xff2.png"))
+    err = expect_error(root, "images.bin", load_images=False)
+    assert "UTF-8" in err.problem

@@ -119,7 +119,11 @@ def _check_binary(model: Path) -> None:
         end = r.buf.find(b"\0", r.pos)
         if end < 0:
             raise r.truncated("file ends inside an image name")
-        name = r.buf[r.pos:end].decode("utf-8", "replace")
+        try:
+            name = r.buf[r.pos:end].decode("utf-8")
+        except UnicodeDecodeError:  # pycolmap would raise it when the name is read
+            raise InputError(r.path, f"image {iid} has a name that is not UTF-8 text (byte {r.pos} of the file)",
+                             "the file is corrupt; re-copy it or re-export the COLMAP model") from None
         r.pos = end + 1
         if cid not in camera_ids:
             raise InputError(r.path, f"image {name!r} refers to camera {cid}, which cameras.bin does not have",
