@@ -203,7 +203,6 @@ def load_transforms(root: str | Path, downscale: float = 1.0, test_every: int = 
         raise InputError(files[0], "lists no frames", "add frames or pass another scene")
 
     # 2. decode, undistort, downscale
-
     def cameras(entries) -> list[Camera]:
         out = []
         for name, intr, w2c, path in entries:
