@@ -287,3 +287,20 @@ def test_colmap_image_name_not_utf8(tiny_colmap):
     f.write_bytes(data.replace(b"img_02.png", b"img_\xff2.png"))
     err = expect_error(root, "images.bin", load_images=False)
     assert "UTF-8" in err.problem
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "transforms"])
+def test_image_name_with_a_line_break(fmt, tiny_colmap, demo_dir, tmp_path):
+    """Found by tests/fuzz: a newline in an image name split the error message over two lines."""
+    if fmt == "colmap":
+        root = tiny_colmap()
+        f = root / "sparse" / "0" / "images.bin"
+        f.write_bytes(f.read_bytes().replace(b"img_02.png", b"img\n02.png"))
+        named = "images.bin"
+    else:
+        root = copy_demo(demo_dir, tmp_path)
+        named, data = frames_json(root)
+        data["frames"][1]["file_path"] = "./train/r\n1"
+        named.write_text(json.dumps(data))
+    err = expect_error(root, named, load_images=False)  # expect_error checks the message is one line
+    assert "\\n" in err.problem  # shown escaped

@@ -95,6 +95,12 @@ def resolve_image(path: Path) -> Path | None:
     return None
 
 
+def has_control_characters(name: str) -> bool:
+    """Whether ``name`` holds a line break, tab or other control character (which would split or
+    garble the one-line error that names the file)."""
+    return any(ord(ch) < 0x20 or 0x7F <= ord(ch) < 0xA0 for ch in name)
+
+
 def is_inside(path: Path, folder: Path) -> bool:
     """Whether ``path`` lies under ``folder`` once ``.`` and ``..`` are collapsed.
 

@@ -17,7 +17,8 @@ import torch
 
 from ..errors import InputError
 from ._common import (FLOAT32_SAFE, Intrinsics, Undistorter, check_downscale, check_image_file, check_translation,
-                      image_size, is_inside, make_camera, pinhole, read_image, rigid_or_none, split_every)
+                      has_control_characters, image_size, is_inside, make_camera, pinhole, read_image, rigid_or_none,
+                      split_every)
 from .types import Scene
 
 #: COLMAP camera models splatk undistorts (params order as in COLMAP's models.h)
@@ -309,6 +310,9 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
     entries = []
     for im in images:
         path = image_dir / im.name
+        if has_control_characters(im.name):
+            raise InputError(img_file, f"image {im.image_id} has a name with control characters ({im.name!r})",
+                             "rename the image (and its entry in the model) or re-run SfM")
         if not im.name or not is_inside(path, image_dir) or path == image_dir:
             raise InputError(img_file, f"image name {im.name!r} points outside the image folder {image_dir}",
                              "image names are paths relative to root/images; fix the model or re-run SfM")

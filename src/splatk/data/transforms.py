@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, check_translation, image_size,
-                      is_inside, make_camera, pinhole, read_image, resolve_image, rigid_or_none, split_every)
+from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, check_translation,
+                      has_control_characters, image_size, is_inside, make_camera, pinhole, read_image, resolve_image,
+                      rigid_or_none, split_every)
 from .types import Camera, Scene
 
 #: OpenGL/Blender camera axes -> OpenCV camera axes (flip y and z)
@@ -120,7 +121,7 @@ def _frames(json_path: Path, data: dict, und: Undistorter) -> list[tuple[str, In
         if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
             raise InputError(json_path, f"frame {i} lacks file_path or transform_matrix", "fix the frame entry")
         rel = fr["file_path"]
-        if not isinstance(rel, str) or not rel:
+        if not isinstance(rel, str) or not rel or has_control_characters(rel):
             raise InputError(json_path, f"frame {i}: file_path {rel!r} is not a file name",
                              "file_path is the image path relative to the transforms file")
         listed = base / rel
