@@ -19,7 +19,8 @@ NUMBERS = st.one_of(INTERESTING_FLOATS, st.floats(allow_nan=True, allow_infinity
                     st.integers(-(2**70), 2**70), st.sampled_from([10**400, -(10**400)]), st.booleans())
 TEXT = st.one_of(st.text(max_size=20), st.sampled_from(
     ["", ".", "..", "/", "../outside/photo.png", "../../../../../../etc/passwd", "/etc/passwd", "train",
-     "./train/r_1", "train/r_1.png", "./train/../train/r_2", "a\0b", "n" * 256, "~/r_1", "./test/r_0", "./train/r\n1", "train/r_1\t"]))
+     "./train/r_1", "train/r_1.png", "./train/../train/r_2", "a\0b", "n" * 256, "~/r_1", "./test/r_0",
+     "./train/r\n1", "train/r_1\t"]))
 JUNK = st.recursive(st.one_of(st.none(), NUMBERS, TEXT),
                     lambda inner: st.one_of(st.lists(inner, max_size=5),
                                             st.dictionaries(st.text(max_size=8), inner, max_size=4)),
