@@ -8,6 +8,8 @@ fx, fy, cx, cy by exactly s.
 from __future__ import annotations
 
 import math
+import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence, TypeVar
@@ -23,6 +25,17 @@ T = TypeVar("T")
 
 #: image suffixes tried when a file name has none (NeRF-synthetic ``./train/r_0``)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr", ".webp")
+
+#: largest magnitude accepted for a coordinate, focal length or principal point: its square must
+#: stay finite in float32 (max 3.4e38), since the renderer squares distances
+FLOAT32_SAFE = 1e18
+
+#: peak bytes per pixel while :func:`read_image` decodes one image (the decoded 4-channel image,
+#: its float32 copy and the float32 RGB / compositing temporaries), rounded up
+DECODE_BYTES_PER_PIXEL = 64
+
+#: OpenCV refuses to decode more pixels than this (its CV_IO_MAX_IMAGE_PIXELS default)
+OPENCV_MAX_PIXELS = 1 << 30
 
 
 @dataclass(frozen=True)
@@ -63,21 +76,77 @@ def check_downscale(downscale: float) -> float:
     return f
 
 
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except (OSError, ValueError):  # a name too long for the file system, an embedded NUL
+        return False
+
+
 def resolve_image(path: Path) -> Path | None:
     """``path`` if it exists, else ``path`` + a known image suffix (when it has none)."""
-    if path.is_file():
+    if _is_file(path):
         return path
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         for suf in IMAGE_SUFFIXES:
             cand = path.with_name(path.name + suf)
-            if cand.is_file():
+            if _is_file(cand):
                 return cand
     return None
 
 
+def has_control_characters(name: str) -> bool:
+    """Whether ``name`` holds a line break, tab or other control character (which would split or
+    garble the one-line error that names the file)."""
+    return any(ord(ch) < 0x20 or 0x7F <= ord(ch) < 0xA0 for ch in name)
+
+
+def is_inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` lies under ``folder`` once ``.`` and ``..`` are collapsed.
+
+    Symbolic links are not followed: a link placed inside the scene folder (e.g. ``images`` ->
+    a photo archive) is the user's choice, while a ``..`` or absolute path written in a data file
+    must not reach outside the folder the user pointed splatk at.
+    """
+    p = os.path.normpath(os.path.abspath(path))
+    f = os.path.normpath(os.path.abspath(folder))
+    try:
+        return os.path.commonpath([p, f]) == f
+    except ValueError:  # different drives
+        return False
+
+
+def physical_memory_bytes() -> int:
+    """This machine's physical memory (8 GiB where the OS does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return 8 << 30
+
+
+def max_image_pixels() -> int:
+    """The most pixels one image may have: decoding it must fit in half of physical memory."""
+    return min(physical_memory_bytes() // 2 // DECODE_BYTES_PER_PIXEL, OPENCV_MAX_PIXELS)
+
+
+def check_image_pixels(path: Path, width: int, height: int) -> None:
+    """Refuse (from the header size, before decoding) an image that cannot be decoded here."""
+    if width < 1 or height < 1:
+        raise InputError(path, f"image header declares an empty {width}x{height} image",
+                         "re-copy or replace the file, or remove it from the scene")
+    limit = max_image_pixels()
+    if width * height > limit:
+        need = width * height * DECODE_BYTES_PER_PIXEL
+        raise InputError(path, f"image header declares {width}x{height} pixels ({width * height / 1e6:.0f} "
+                         f"megapixels, about {need / 2**30:.0f} GiB to decode); this machine "
+                         f"({physical_memory_bytes() / 2**30:.0f} GiB of memory) decodes at most "
+                         f"{limit / 1e6:.0f} megapixels per image",
+                         "downscale the image files (e.g. 4000 pixels wide) or remove the image from the scene")
+
+
 def check_image_file(path: Path, listed_in: str) -> None:
     """Existence and non-empty checks (cheap; done for every image before decoding any)."""
-    if not path.is_file():
+    if not _is_file(path):
         raise InputError(path, f"image listed in {listed_in} does not exist",
                          f"add the image or remove its entry from {listed_in}")
     if path.stat().st_size == 0:
@@ -86,21 +155,28 @@ def check_image_file(path: Path, listed_in: str) -> None:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header (no decode); raises InputError if unreadable.
+    """(width, height) from the file header (no decode); raises InputError if unreadable or too
+    large to decode on this machine (:func:`check_image_pixels`).
 
     EXIF orientation is ignored here and when decoding, as COLMAP does.
     """
-    try:
-        from PIL import Image, UnidentifiedImageError
-    except ImportError:  # pragma: no cover - pillow comes with matplotlib
-        img = read_image(path)
-        return img.shape[1], img.shape[0]
-    try:
-        with Image.open(path) as im:
-            return int(im.size[0]), int(im.size[1])
-    except (UnidentifiedImageError, OSError, ValueError) as e:
-        raise InputError(path, "image cannot be decoded (corrupt, truncated or not an image)",
-                         "re-copy or replace the file, or remove it from the scene") from None
+    from PIL import Image  # pillow comes with matplotlib
+
+    # check_image_pixels applies a cap from this machine's memory; pillow's fixed one would warn
+    # about or refuse (with an exception of its own) images that fit
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with Image.open(path) as im:
+                width, height = int(im.size[0]), int(im.size[1])
+        except (OSError, ValueError, SyntaxError, EOFError):  # UnidentifiedImageError is an OSError
+            raise InputError(path, "image cannot be decoded (corrupt, truncated or not an image)",
+                             "re-copy or replace the file, or remove it from the scene") from None
+        finally:
+            Image.MAX_IMAGE_PIXELS = saved
+    check_image_pixels(path, width, height)
+    return width, height
 
 
 def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -201,6 +277,39 @@ class Undistorter:
         return np.ascontiguousarray(und[y:y + h, x:x + w])
 
 
+def check_intrinsics(intr: Intrinsics, path: Path, where: str) -> None:
+    """Focal lengths positive, principal point at most one image size outside the image, every
+    value finite and at most :data:`FLOAT32_SAFE`; ``where`` names the camera in ``path``."""
+    values = intr.values()
+    if not all(math.isfinite(v) and abs(v) <= FLOAT32_SAFE for v in values):
+        raise InputError(path, f"{where} has a non-finite or out-of-range intrinsic value "
+                         f"({', '.join(f'{v:g}' for v in values)}; at most {FLOAT32_SAFE:g} in magnitude)",
+                         "fix the camera's intrinsics")
+    if not (intr.fx > 0 and intr.fy > 0):
+        raise InputError(path, f"{where} has focal length fx={intr.fx:g}, fy={intr.fy:g}; both must be positive",
+                         "focal lengths are in pixels, about the image width for a normal lens")
+    if not (-intr.width <= intr.cx <= 2 * intr.width and -intr.height <= intr.cy <= 2 * intr.height):
+        raise InputError(path, f"{where} has its principal point ({intr.cx:g}, {intr.cy:g}) more than an image "
+                         f"size outside its {intr.width}x{intr.height} image",
+                         "cx, cy are in pixels, usually near the image centre")
+
+
+def pinhole(intr: Intrinsics, undistorter: Undistorter, path: Path, where: str) -> Intrinsics:
+    """The undistorted pinhole camera of ``intr`` (checked), or InputError when its distortion
+    leaves no usable image."""
+    check_intrinsics(intr, path, where)
+    try:
+        out, _ = undistorter.geometry(intr)
+    except cv2.error:
+        out = None
+    if out is None or not (out.fx > 0 and out.fy > 0 and all(math.isfinite(v) and abs(v) <= FLOAT32_SAFE
+                                                             for v in out.values())):
+        raise InputError(path, f"{where}: its distortion coefficients ({', '.join(f'{d:g}' for d in intr.dist)}) "
+                         "leave no usable undistorted image",
+                         "check the distortion values (OpenCV order k1, k2, p1, p2, k3) or undistort the images first")
+    return out
+
+
 def scaled(intr: Intrinsics, downscale: float) -> Intrinsics:
     """Intrinsics of the image resized by 1 / downscale (sizes rounded half up)."""
     if downscale == 1.0:
@@ -245,6 +354,8 @@ def rigid_or_none(M: np.ndarray, tol: float = 0.05) -> np.ndarray | None:
     if M.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(M)):
         return None
     R, t = M[:3, :3], M[:3, 3]
+    if np.abs(R).max() > 2.0:  # far from a rotation (and an SVD of huge values may not converge)
+        return None
     U, S, Vt = np.linalg.svd(R)
     if np.abs(S - 1.0).max() > tol or np.linalg.det(R) <= 0:
         return None
@@ -252,6 +363,15 @@ def rigid_or_none(M: np.ndarray, tol: float = 0.05) -> np.ndarray | None:
     out[:3, :3] = U @ Vt
     out[:3, 3] = t
     return out
+
+
+def check_translation(world_to_cam: np.ndarray, path: Path, where: str) -> None:
+    """Camera centre and translation at most :data:`FLOAT32_SAFE` in magnitude (poses become float32)."""
+    centre = -world_to_cam[:3, :3].T @ world_to_cam[:3, 3]
+    if not (np.abs(world_to_cam[:3, 3]).max() <= FLOAT32_SAFE and np.abs(centre).max() <= FLOAT32_SAFE):
+        raise InputError(path, f"{where} has a camera position out of range "
+                         f"({', '.join(f'{v:g}' for v in centre)}; at most {FLOAT32_SAFE:g} in magnitude)",
+                         "fix the pose (a value too large for float32)")
 
 
 def split_every(items: list[T], test_every: int | None) -> tuple[list[T], list[T]]:

@@ -7,6 +7,7 @@ instead of pycolmap's ``IndexError: Rig with ID ... does not exist`` or ``std::b
 """
 from __future__ import annotations
 
+import math
 import struct
 from pathlib import Path
 
@@ -15,8 +16,9 @@ import pycolmap
 import torch
 
 from ..errors import InputError
-from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, image_size, make_camera,
-                      read_image, rigid_or_none, split_every)
+from ._common import (FLOAT32_SAFE, Intrinsics, Undistorter, check_downscale, check_image_file, check_translation,
+                      has_control_characters, image_size, is_inside, make_camera, pinhole, read_image, rigid_or_none,
+                      split_every)
 from .types import Scene
 
 #: COLMAP camera models splatk undistorts (params order as in COLMAP's models.h)
@@ -118,7 +120,11 @@ def _check_binary(model: Path) -> None:
         end = r.buf.find(b"\0", r.pos)
         if end < 0:
             raise r.truncated("file ends inside an image name")
-        name = r.buf[r.pos:end].decode("utf-8", "replace")
+        try:
+            name = r.buf[r.pos:end].decode("utf-8")
+        except UnicodeDecodeError:  # pycolmap would raise it when the name is read
+            raise InputError(r.path, f"image {iid} has a name that is not UTF-8 text (byte {r.pos} of the file)",
+                             "the file is corrupt; re-copy it or re-export the COLMAP model") from None
         r.pos = end + 1
         if cid not in camera_ids:
             raise InputError(r.path, f"image {name!r} refers to camera {cid}, which cameras.bin does not have",
@@ -163,9 +169,11 @@ def _check_text(model: Path) -> None:
         if len(tok) != 4 + models[tok[1]]:
             raise bad(path, i, f"{tok[1]} needs {models[tok[1]]} parameters, found {len(tok) - 4}")
         try:
-            [float(t) for t in tok[2:]]
+            values = [float(t) for t in tok[2:]]
         except ValueError:
             raise bad(path, i, "non-numeric value") from None
+        if not all(math.isfinite(v) for v in values):
+            raise bad(path, i, f"camera {tok[0]} has a non-finite size or parameter")
 
     path = model / "images.txt"
     all_lines = lines(path)
@@ -215,6 +223,8 @@ def _read_reconstruction(model: Path) -> pycolmap.Reconstruction:
         msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
         ext = ".bin" if binary else ".txt"
         culprit = {"Camera": "cameras", "Rig": "images", "Image": "points3D"}.get(msg.split(" ")[0], None)
+        if "VerifyParams" in msg:  # a camera whose parameters do not fit its model
+            culprit = "cameras"
         path = model / f"{culprit}{ext}" if culprit else model
         raise InputError(path, f"COLMAP model cannot be read: {msg}",
                          "the file is corrupt or the model files do not belong together; re-export it") from None
@@ -284,21 +294,35 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
     ext = ".bin" if (model / "cameras.bin").is_file() and (model / "images.bin").is_file() else ".txt"
     cam_file, img_file, pts_file = (model / f"{f}{ext}" for f in _MODEL_FILES)
 
+    und = Undistorter()
     intrinsics = {cid: _intrinsics(cam, cam_file) for cid, cam in rec.cameras.items()}
+    for cid, intr in sorted(intrinsics.items()):
+        pinhole(intr, und, cam_file, f"camera {cid}")
     images = sorted((im for im in rec.images.values() if getattr(im, "has_pose", True)), key=lambda im: im.name)
     if not images:
         raise InputError(img_file, "COLMAP model has no registered images", "re-run SfM")
+    for a, b in zip(images, images[1:]):
+        if a.name == b.name:
+            raise InputError(img_file, f"images {a.image_id} and {b.image_id} have the same name {a.name!r}",
+                             "remove the duplicate image from the model (or re-run SfM)")
 
     # 1. every input checked before any decoding
     entries = []
     for im in images:
+        path = image_dir / im.name
+        if has_control_characters(im.name):
+            raise InputError(img_file, f"image {im.image_id} has a name with control characters ({im.name!r})",
+                             "rename the image (and its entry in the model) or re-run SfM")
+        if not im.name or not is_inside(path, image_dir) or path == image_dir:
+            raise InputError(img_file, f"image name {im.name!r} points outside the image folder {image_dir}",
+                             "image names are paths relative to root/images; fix the model or re-run SfM")
         pose = _cam_from_world(im)
         w2c = rigid_or_none(pose)
         if w2c is None:
             what = "a non-finite" if not np.all(np.isfinite(pose)) else "an invalid (non-rigid)"
             raise InputError(img_file, f"image {im.name!r} has {what} pose",
                              "re-run SfM or remove the image from the model")
-        path = image_dir / im.name
+        check_translation(w2c, img_file, f"image {im.name!r}")
         check_image_file(path, img_file.name)
         intr = intrinsics[im.camera_id]
         w, h = image_size(path)
@@ -312,14 +336,14 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
         pts = sorted(rec.points3D.items())
         xyz = np.array([p.xyz for _, p in pts], dtype=np.float64)
         rgb = np.array([p.color for _, p in pts], dtype=np.float64) / 255.0
-        if not np.all(np.isfinite(xyz)):
-            raise InputError(pts_file, f"{int((~np.isfinite(xyz).all(1)).sum())} points have non-finite positions",
-                             "re-run SfM or filter the point cloud")
+        bad = ~(np.abs(xyz) <= FLOAT32_SAFE).all(1)  # NaN compares False
+        if bad.any():
+            raise InputError(pts_file, f"{int(bad.sum())} points have non-finite or out-of-range positions "
+                             f"(at most {FLOAT32_SAFE:g} in magnitude)", "re-run SfM or filter the point cloud")
     else:
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3))
 
     # 2. decode, undistort, downscale
-    und = Undistorter()
     cams = []
     for name, intr, w2c, path in entries:
         img = None

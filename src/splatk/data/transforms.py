@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, image_size, make_camera,
-                      read_image, resolve_image, rigid_or_none, split_every)
+from ._common import (Intrinsics, Undistorter, check_downscale, check_image_file, check_translation,
+                      has_control_characters, image_size, is_inside, make_camera, pinhole, read_image, resolve_image,
+                      rigid_or_none, split_every)
 from .types import Camera, Scene
 
 #: OpenGL/Blender camera axes -> OpenCV camera axes (flip y and z)
@@ -47,6 +49,10 @@ def _read_json(path: Path) -> dict:
     except json.JSONDecodeError as e:
         raise InputError(path, f"is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})",
                          "fix the syntax or regenerate the file") from None
+    except ValueError as e:  # an integer longer than Python converts (4300 digits)
+        raise InputError(path, f"is not valid JSON ({e})", "fix the value or regenerate the file") from None
+    except RecursionError:
+        raise InputError(path, "is not valid JSON (nested too deeply)", "regenerate the file") from None
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise InputError(path, "has no 'frames' list", "a transforms file needs {\"frames\": [...]} with "
                          "file_path and transform_matrix per frame")
@@ -58,7 +64,7 @@ def _number(meta: dict, key: str, json_path: Path, frame: str) -> float | None:
         return None
     try:
         v = float(meta[key])
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         v = float("nan")
     if not math.isfinite(v):
         raise InputError(json_path, f"frame {frame!r}: {key} = {meta[key]!r} is not a finite number",
@@ -73,6 +79,11 @@ def _intrinsics(meta: dict, json_path: Path, frame: str, image_path: Path) -> In
     if meta.get("is_fisheye"):
         raise InputError(json_path, "fisheye cameras (is_fisheye) are not supported",
                          "undistort the images to a pinhole camera first")
+    for key in ("camera_angle_x", "camera_angle_y"):
+        if num[key] is not None and not 0.0 < num[key] < math.pi:
+            raise InputError(json_path, f"frame {frame!r}: {key} = {num[key]:g} is not a field of view "
+                             "between 0 and pi radians", f"{key} is the full field of view in radians "
+                             "(e.g. 0.6911 for 39.6 degrees)")
     w, h = image_size(image_path)
     if num["w"] is not None and num["h"] is not None and (round(num["w"]), round(num["h"])) != (w, h):
         raise InputError(image_path, f"image is {w}x{h} but {json_path.name} says "
@@ -87,8 +98,8 @@ def _intrinsics(meta: dict, json_path: Path, frame: str, image_path: Path) -> In
         fx = fy
     if fy is None:
         fy = fx
-    if fx is None or fx <= 0 or fy <= 0:
-        raise InputError(json_path, f"frame {frame!r} has no usable focal length",
+    if fx is None:
+        raise InputError(json_path, f"frame {frame!r} has no focal length",
                          "add fl_x (and fl_y) or camera_angle_x, globally or per frame")
     cx = num["cx"] if num["cx"] is not None else w / 2.0
     cy = num["cy"] if num["cy"] is not None else h / 2.0
@@ -99,24 +110,37 @@ def _intrinsics(meta: dict, json_path: Path, frame: str, image_path: Path) -> In
     return Intrinsics(w, h, fx, fy, cx, cy, dist)
 
 
-def _frames(json_path: Path, data: dict) -> list[tuple[str, Intrinsics, np.ndarray, Path]]:
-    """Check every frame of one file: image present and non-empty, pose finite, intrinsics complete."""
+def _frames(json_path: Path, data: dict, und: Undistorter) -> list[tuple[str, Intrinsics, np.ndarray, Path]]:
+    """Check every frame of one file: image inside the scene folder, present, listed once and
+    non-empty; pose finite and rigid; intrinsics complete and valid."""
     base = json_path.parent
     glob = {k: data[k] for k in _INTRINSIC_KEYS if k in data}
     out = []
+    first_use: dict[Path, int] = {}
     for i, fr in enumerate(data["frames"]):
         if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
             raise InputError(json_path, f"frame {i} lacks file_path or transform_matrix", "fix the frame entry")
-        rel = str(fr["file_path"])
+        rel = fr["file_path"]
+        if not isinstance(rel, str) or not rel or has_control_characters(rel):
+            raise InputError(json_path, f"frame {i}: file_path {rel!r} is not a file name",
+                             "file_path is the image path relative to the transforms file")
         listed = base / rel
+        if not is_inside(listed, base):
+            raise InputError(json_path, f"frame {i}: file_path {rel!r} points outside the scene folder {base}",
+                             "keep the images inside the scene folder (a symbolic link inside it is fine)")
         path = resolve_image(listed)
         if path is None:
             raise InputError(listed, f"image of frame {i} in {json_path.name} does not exist",
                              f"add the image or remove the frame from {json_path.name}")
         check_image_file(path, json_path.name)
+        key = Path(os.path.normpath(os.path.abspath(path)))
+        if key in first_use:
+            raise InputError(json_path, f"frames {first_use[key]} and {i} both use image {rel!r}",
+                             "remove the duplicate frame")
+        first_use[key] = i
         try:
             c2w = np.array(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError, RecursionError):
             c2w = np.full((4, 4), np.nan)
         if c2w.shape == (3, 4):
             c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
@@ -128,7 +152,9 @@ def _frames(json_path: Path, data: dict) -> list[tuple[str, Intrinsics, np.ndarr
             raise InputError(json_path, f"frame {rel!r}: transform_matrix is not a rigid transform "
                              "(its rotation part is not orthonormal with det +1)", "fix or remove the frame")
         w2c = np.linalg.inv(c2w @ GL_TO_CV)
+        check_translation(w2c, json_path, f"frame {rel!r}")
         intr = _intrinsics({**glob, **{k: fr[k] for k in _INTRINSIC_KEYS if k in fr}}, json_path, rel, path)
+        pinhole(intr, und, json_path, f"frame {rel!r}")
         name = path.relative_to(base).as_posix() if path.is_relative_to(base) else path.as_posix()
         out.append((name, intr, w2c, path))
     return out
@@ -168,7 +194,8 @@ def load_transforms(root: str | Path, downscale: float = 1.0, test_every: int = 
     background = tuple(float(b) for b in background)
 
     # 1. every input checked before any decoding
-    per_file = [_frames(f, _read_json(f)) for f in files]
+    und = Undistorter()
+    per_file = [_frames(f, _read_json(f), und) for f in files]
     if len(per_file) == 2:  # the dataset's own train / test lists
         train_f, test_f = per_file
     else:
@@ -177,8 +204,6 @@ def load_transforms(root: str | Path, downscale: float = 1.0, test_every: int = 
         raise InputError(files[0], "lists no frames", "add frames or pass another scene")
 
     # 2. decode, undistort, downscale
-    und = Undistorter()
-
     def cameras(entries) -> list[Camera]:
         out = []
         for name, intr, w2c, path in entries:
