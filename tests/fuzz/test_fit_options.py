@@ -5,6 +5,7 @@ CLI, a rejected option changes no file outside --out and leaves an existing run 
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import pytest
@@ -72,7 +73,11 @@ FLAGS = ["--budget", "--sh-degree", "--threads", "--downscale", "--checkpoint-ev
          "--time-budget", "--k", "--budget-bytes"]
 
 
-@settings(deadline=None, max_examples=40, suppress_health_check=[HealthCheck.function_scoped_fixture])
+#: each example may run `splatk fit` for an iteration: fewer than the loader tests
+CLI_EXAMPLES = 400 if os.environ.get("SPLATK_FUZZ_PROFILE") == "long" else 40
+
+
+@settings(deadline=None, max_examples=CLI_EXAMPLES, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.lists(st.tuples(st.sampled_from(FLAGS), FLAG_VALUES), min_size=1, max_size=3))
 def test_rejected_flags_touch_nothing(world, flags):
     root, scene, run = world

@@ -1,22 +1,18 @@
-"""Fuzzed preset files: ``load_preset`` returns a mapping of option names or raises click's
-BadParameter (shown as a usage error, exit code 2). Only the parsing is fuzzed here; what the
-options' values mean is checked by the fit command's own tests.
-
-Two inputs ``load_preset`` does not yet refuse cleanly are pinned by the strict xfail tests at
-the end (a non-string key, a file that is not UTF-8); the generators leave them out until those
-tests pass, then they should widen to any key and raw bytes.
+"""Fuzzed preset files: ``load_preset`` returns a mapping of option names or raises one
+InputError naming the file (exit code 2 through the CLI). Only the parsing is fuzzed here; what
+the options' values mean is checked by the schema's own property test (test_fit_options.py).
 """
 from __future__ import annotations
 
 import tempfile
 from pathlib import Path
 
-import click
 import pytest
 import yaml
 from hypothesis import event, given
 from hypothesis import strategies as st
 
+from splatk.errors import InputError
 from splatk_cli.common import load_preset
 
 SCALARS = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(), st.text(max_size=12))
@@ -37,15 +33,15 @@ def _load(text: str | bytes) -> str:
         path = Path(tmp) / "preset.yaml"
         (path.write_bytes if isinstance(text, bytes) else path.write_text)(text)
         try:
-            preset = load_preset(str(path))
-        except click.BadParameter as e:
-            assert str(path) in e.format_message() or "preset" in e.format_message(), e.format_message()
+            preset, found = load_preset(str(path))
+        except InputError as e:
+            assert str(path) in e.message() and "\n" not in e.message(), e.message()
             return "refused"
-        assert isinstance(preset, dict) and all(isinstance(k, str) for k in preset), preset
+        assert found == path and isinstance(preset, dict) and all(isinstance(k, str) for k in preset), preset
         return "ok"
 
 
-@given(doc=st.dictionaries(OPTION_NAMES, VALUES, max_size=6))
+@given(doc=st.dictionaries(st.one_of(OPTION_NAMES, st.integers(), st.none(), st.booleans()), VALUES, max_size=6))
 def test_structured_presets(doc):
     event(_load(yaml.safe_dump(doc, allow_unicode=True)))
 
@@ -55,15 +51,15 @@ def test_text_presets(parts):
     event(_load("".join(parts)))
 
 
-KNOWN = "load_preset (cli/common.py) lets this escape as a traceback; the option-validation rewrite refuses it"
+@given(raw=st.binary(max_size=64))
+def test_raw_byte_presets(raw):
+    event(_load(raw))
 
 
-@pytest.mark.xfail(strict=True, raises=AttributeError, reason=KNOWN)
 @pytest.mark.parametrize("text", ["1: 2\n", "null: 3\n"])
 def test_non_string_key_is_refused(text):
     assert _load(text) == "refused"
 
 
-@pytest.mark.xfail(strict=True, raises=UnicodeDecodeError, reason=KNOWN)
 def test_non_utf8_preset_is_refused():
     assert _load(b"iters: \xff\n") == "refused"

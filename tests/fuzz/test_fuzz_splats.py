@@ -3,7 +3,7 @@ the hypothesis deadline and the memory cap of conftest.py.
 
 Inputs start from the file ``splatk image`` writes for a tiny model of each kernel: its payload
 truncated, byte-flipped or replaced, or its header fields set at random (the latter test is
-marked xfail until the reader checks the header before allocating).
+checked against the file's length and limits before anything is allocated).
 """
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ import tempfile
 from functools import lru_cache
 from pathlib import Path
 
-import pytest
 import torch
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from splatk.errors import InputError
-from splatk.models.image2d import KERNELS, Splats2D
-from splatk.models.image2d_io import HEADER_BYTES, MAGIC, encode_splats2d, load_splats2d
+from splatk.image.kernels import KERNELS
+from splatk.image.model import Splats2D
+from splatk.image.file import HEADER_BYTES, MAGIC, encode_splats2d, load_splats2d
 
 
 @lru_cache(maxsize=1)
@@ -77,11 +77,6 @@ def test_splat_file_payload(data):
     _load(bytes(raw), kind)
 
 
-# the header's count, size and palette fields are not yet checked before the model is allocated
-# (a count of 2**32 asks torch for 100 GB; 257 palette entries reach Splats2D's ValueError);
-# image2d_io.py is being fixed, after which this marker goes
-@pytest.mark.xfail(raises=(RuntimeError, ValueError, MemoryError), strict=False,
-                   reason="splats.bin header fields not validated before allocation")
 @settings(report_multiple_bugs=False)
 @given(data=st.data())
 def test_splat_file_header(data):
