@@ -28,6 +28,9 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--primitive", type=click.Choice(PRIMITIVES), help="Primitive type. [default: volumetric]")
 @click.option("--backend", type=click.Choice(["auto", *backend_names()]), help="Rasteriser backend. [default: auto]")
 @click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
+@click.option("--strategy", type=click.Choice(["mcmc", "adc"]),
+              help="Density control: mcmc (DBS / 3DGS-MCMC: relocate, grow to --budget) or adc (3DGS: clone, "
+                   "split, prune, opacity reset until 15k of 30k iterations; no budget). [default: mcmc]")
 @click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: try N/2 (N: 100000) and double "
               "while a short run (a quarter of the iterations) at the doubled budget beats the previous one by "
               "> 0.5 dB on held-out train views, then train a fresh model at the chosen budget on every train view "

@@ -35,7 +35,7 @@ def observe(strategy: ADCStrategy, grads_ndc: list[float], width=200, height=100
     g = torch.tensor(grads_ndc)
     n = len(grads_ndc)
     pix = torch.stack([g / (0.5 * width), torch.zeros_like(g)], -1)  # pixel-space gradient
-    strategy.observe(600, n, torch.arange(n), pix, torch.tensor(radii or [1.0] * n), width, height)
+    strategy.accumulate(600, n, torch.arange(n), pix, torch.tensor(radii or [1.0] * n), width, height)
 
 
 def test_clone_split_prune_as_3dgs_decides():

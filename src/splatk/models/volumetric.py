@@ -86,20 +86,27 @@ class SplatModel(PrimitiveModel):
             view = ViewContext(proj.means_cam.index_select(0, idx), scales.index_select(0, idx),
                                proj.rotmats_cam.index_select(0, idx), backend)
         profile = self.kernel.profile(vis, view)
+        means2d, conics = proj.means2d.index_select(0, idx), proj.conics.index_select(0, idx)
+        if means2d.requires_grad:  # density control reads the view-space gradient (3DGS ADC)
+            means2d.retain_grad()
         out: RasterOutput = backend.rasterize(
-            proj.means2d.index_select(0, idx), proj.conics.index_select(0, idx),
+            means2d, conics,
             torch.sigmoid(vis["opacity_logits"]), rgb, proj.depths.detach().index_select(0, idx), profile,
             camera.width, camera.height, background.to(dev),
         )
-        return RenderResult(out.colors, out.alphas, idx)
+        return RenderResult(out.colors, out.alphas, idx, means2d, conics)
 
 
 class RenderResult(NamedTuple):
-    """image [H, W, 3], alpha [H, W, 1], visible [M] indices of the rendered primitives."""
+    """image [H, W, 3], alpha [H, W, 1], visible [M] indices of the rendered primitives; for
+    volumetric models also their pixel-space centres [M, 2] (gradient kept after backward) and
+    normalised conics [M, 3]."""
 
     image: torch.Tensor
     alpha: torch.Tensor
     visible: torch.Tensor
+    means2d: torch.Tensor | None = None
+    conics: torch.Tensor | None = None
 
 
 def knn_mean_sq_dist(points: torch.Tensor, k: int = 3) -> torch.Tensor:

@@ -18,6 +18,7 @@ import torch
 from ..errors import InputError
 from ..machine import memory_bytes
 from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
+from ..train.adc import ADCConfig
 from ..train.trainer import MCMC_FIELDS, TrainConfig
 from .autobudget import AutoBudgetConfig
 from .run_length import run_fraction, scale_to_run_length
@@ -83,8 +84,12 @@ class FitConfig:
 
 
 _FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train", "auto_budget"}
-#: flat names of TrainConfig fields, its MCMC settings included (``refine_every``: train.mcmc)
-_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)} - {"mcmc"} | set(MCMC_FIELDS)
+#: ADC's settings with flat names (the others, e.g. its min_opacity, only nested: ``adc: {...}``)
+ADC_FLAT = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "grad_threshold",
+            "percent_dense")
+#: flat names of TrainConfig fields, its MCMC and ADC settings included (``refine_every``:
+#: train.mcmc, ``densify_until``: train.adc); ``adc`` itself takes a mapping
+_TRAIN_FIELDS = {f.name for f in fields(TrainConfig)} - {"mcmc"} | set(MCMC_FIELDS) | set(ADC_FLAT)
 #: flat option names besides FitConfig / TrainConfig fields
 EXTRA_OPTIONS = ("k", "weights", "kernel_weights", "budget_bytes", "kernel_options", "auto_budget", "name")
 
@@ -145,7 +150,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
     opts = {k.replace("-", "_"): v for k, v in options.items() if v is not None or k == "weights"}
     cfg = FitConfig.from_dict(base.to_dict()) if base is not None else FitConfig()
     notes: dict = {}
-    given = set(opts)
+    given = set(opts) | set(opts["adc"] if isinstance(opts.get("adc"), dict) else ())
     unknown = sorted(set(opts) - _FIT_FIELDS - _TRAIN_FIELDS - set(EXTRA_OPTIONS))
     if unknown:
         src = sources.get(unknown[0])
@@ -186,9 +191,21 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
                                 sources.get("time_budget")) from None
         if "iters" not in opts and cfg.train.time_budget is not None:
             cfg.train.iters = 10**9  # the clock decides (with iters too, whichever ends first)
+    if "adc" in opts:
+        nested = opts.pop("adc")
+        known = {f.name for f in fields(ADCConfig)}
+        if not isinstance(nested, dict) or set(nested) - known:
+            raise option_error("adc", nested, f"must be a mapping of {', '.join(sorted(known))}",
+                               "e.g. adc: {grad_threshold: 0.0002}", sources.get("adc"))
+        for key, value in nested.items():
+            setattr(cfg.train.adc, key, value)
     for key, value in opts.items():
-        target = cfg if key in _FIT_FIELDS else cfg.train.mcmc if key in MCMC_FIELDS else cfg.train
+        target = (cfg if key in _FIT_FIELDS else cfg.train.mcmc if key in MCMC_FIELDS
+                  else cfg.train.adc if key in ADC_FLAT else cfg.train)
         setattr(target, key, value)
+    if cfg.train.strategy == "adc" and cfg.train.adc.cap_max is None:
+        # 3DGS has no cap; this one only keeps a run inside the machine's memory
+        cfg.train.adc.cap_max = max_budget(cfg)
     cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
     if budget_bytes is not None:
         try:
@@ -331,6 +348,17 @@ RULES = [
     ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, None, lo_open=True)),
     ("train.snapshot_every", "snapshot_every", int_range(1)),
     ("train.divergence_factor", "divergence_factor", float_range(0.0)),
+    ("train.strategy", "strategy", choice("mcmc", "adc")),
+    ("train.adc.densify_from", "densify_from", int_range(0)),
+    ("train.adc.densify_until", "densify_until", int_range(0)),
+    ("train.adc.densify_every", "densify_every", int_range(1)),
+    ("train.adc.opacity_reset_every", "opacity_reset_every", int_range(1)),
+    ("train.adc.grad_threshold", "grad_threshold", float_range(0.0, None, lo_open=True)),
+    ("train.adc.percent_dense", "percent_dense", float_range(0.0, 1.0, lo_open=True)),
+    ("train.adc.min_opacity", "adc.min_opacity", float_range(0.0, 1.0, lo_open=True)),
+    ("train.adc.max_screen_size", "adc.max_screen_size", float_range(0.0, None, lo_open=True)),
+    ("train.adc.max_world_size", "adc.max_world_size", float_range(0.0, None, lo_open=True)),
+    ("train.adc.split_copies", "adc.split_copies", int_range(2, 16)),
 ]
 
 
@@ -417,6 +445,17 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
             raise option_error(name, value, f"needs about {value * train_bytes_per_primitive(cfg) / 2**30:.1f} GiB to train, "
                                 f"more than half of this machine's {memory_bytes() / 2**30:.0f} GiB",
                                 f"at most {cap:,} primitives fit here", sources.get(name))
+    if cfg.train.strategy == "adc":
+        if cfg.primitive != "volumetric":
+            raise InputError(None, "--strategy adc (3DGS's density control) is for volumetric primitives",
+                             "use --strategy mcmc with --primitive planar")
+        if cfg.auto_budget is not None:
+            raise InputError(None, "--budget auto chooses an MCMC budget; ADC grows without one",
+                             "use --strategy mcmc with --budget auto, or a number with --strategy adc")
+        cap = cfg.train.adc.cap_max
+        if cap is not None and not valid(cap, int_range(1, max_budget(cfg))):
+            raise option_error("adc.cap_max", cap, f"must be a whole number from 1 to {max_budget(cfg):,} (memory)",
+                               "give a smaller cap", sources.get("adc"))
     if cfg.auto_budget is not None:
         ab = cfg.auto_budget
         if not valid(ab.holdout_every, int_range(2)):

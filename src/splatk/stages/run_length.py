@@ -17,6 +17,9 @@ from ..train.mcmc import MCMCConfig
 FULL_ITERS = 30_000
 #: step-count schedules at 30k iterations: (value, smallest value when scaled to a shorter run)
 RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
+#: ADC's step-count schedules at 30k iterations (3DGS): (value, smallest value when scaled)
+ADC_SCHEDULES = {"densify_from": (500, 0), "densify_until": (15_000, 1), "densify_every": (100, 5),
+                 "opacity_reset_every": (3000, 10)}
 #: short runs raise MCMC's position noise (DBS's noise_lr, tuned for 30k iterations) by
 #: 30k / iters, at most this much
 NOISE_LR_MULT_MAX = 10.0
@@ -62,6 +65,11 @@ def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
             target = t if key == "sh_degree_interval" else t.mcmc
             setattr(target, key, max(lo, round(full * s)))
             scaled[key] = getattr(target, key)
+    if t.strategy == "adc":
+        for key, (full, lo) in ADC_SCHEDULES.items():
+            if key not in keep:
+                setattr(t.adc, key, max(lo, round(full * s)))
+                scaled[key] = getattr(t.adc, key)
     if "noise_lr" not in keep:
         # from the 30k default, not the current value, so scaling twice changes nothing
         t.mcmc.noise_lr = scaled["noise_lr"] = MCMCConfig.noise_lr * min(NOISE_LR_MULT_MAX, 1 / s)

@@ -26,6 +26,7 @@ import torch
 
 from ..functional.projection import quats_to_rotmats
 from .optim import PrimitiveAdam
+from .strategies import Strategy, register_strategy
 
 
 @dataclass
@@ -63,8 +64,13 @@ def screen_radii(conics: torch.Tensor, support_sigmas: float, gaussian_sigmas: f
     return radius * (gaussian_sigmas / support_sigmas)
 
 
-class ADCStrategy:
+@register_strategy
+class ADCStrategy(Strategy):
     name = "adc"
+
+    @classmethod
+    def from_train_config(cls, config, extent: float) -> "ADCStrategy":
+        return cls(config.adc, extent)
 
     def __init__(self, config: ADCConfig, extent: float):
         self.cfg = config
@@ -81,9 +87,17 @@ class ADCStrategy:
             self.seen = torch.zeros(n, device=device)
             self.max_radii = torch.zeros(n, device=device)
 
+    def observe(self, it: int, model, render, camera) -> None:
+        """The view-space gradients and screen radii of the primitives ``render`` drew."""
+        if it >= self.cfg.densify_until or render.means2d is None or render.means2d.grad is None:
+            return
+        radii = screen_radii(render.conics.detach(), model.kernel.support_sigmas)
+        self.accumulate(it, model.num_primitives, render.visible, render.means2d.grad, radii,
+                        camera.width, camera.height)
+
     @torch.no_grad()
-    def observe(self, it: int, n: int, visible: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor,
-                width: int, height: int) -> None:
+    def accumulate(self, it: int, n: int, visible: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor,
+                   width: int, height: int) -> None:
         """Accumulate one view's statistics (after its backward pass).
 
         Args:
@@ -99,6 +113,15 @@ class ADCStrategy:
         self.grad_sum.index_add_(0, visible, ndc.norm(dim=-1))
         self.seen.index_add_(0, visible, torch.ones_like(radii))
         self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii)
+
+    def state_dict(self) -> dict:
+        if self.grad_sum is None:
+            return {}
+        return {"grad_sum": self.grad_sum.clone(), "seen": self.seen.clone(), "max_radii": self.max_radii.clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.grad_sum, self.seen, self.max_radii = (
+            (state["grad_sum"].clone(), state["seen"].clone(), state["max_radii"].clone()) if state else (None,) * 3)
 
     # ---- the step -----------------------------------------------------------------------
     def is_densify_step(self, it: int) -> bool:

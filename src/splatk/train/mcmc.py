@@ -18,6 +18,7 @@ import torch
 
 from ..functional.projection import covariances_3d
 from .optim import PrimitiveAdam
+from .strategies import Strategy, register_strategy
 
 
 @dataclass
@@ -60,8 +61,13 @@ def split_scale_factor(opacity: torch.Tensor, new_opacity: torch.Tensor, copies:
     return torch.where(torch.isfinite(factor) & (denom > 0), factor, torch.ones_like(factor)).to(opacity.dtype)
 
 
-class MCMCStrategy:
+@register_strategy
+class MCMCStrategy(Strategy):
     name = "mcmc"
+
+    @classmethod
+    def from_train_config(cls, config, extent: float) -> "MCMCStrategy":
+        return cls(config.mcmc, cap_max=config.budget)
 
     def __init__(self, config: MCMCConfig, cap_max: int = 100_000):
         # checked here, not at the first refine step hundreds of iterations into a run

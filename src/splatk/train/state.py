@@ -42,6 +42,7 @@ def trainer_state(tr) -> dict:
         "view_gen": tr.view_gen.get_state(),
         "mcmc_gen": tr.mcmc_gen.get_state(),
         "view_queue": list(tr.view_queue),
+        "strategy": tr.strategy.state_dict(),
         "torch_rng": torch.get_rng_state(),
         # plain values and tensors only, so that checkpoints load with weights_only=True
         # (numpy's state holds an array: its 624 uint32 keys go in an int64 tensor)
@@ -66,6 +67,7 @@ def load_trainer_state(tr, sd: dict) -> None:
         {k: nn.Parameter(v.clone().to(tr.device)) for k, v in sd["prims"].items()}
     )
     tr.model.kernel.load_state_dict(sd["kernel"])
+    tr.strategy.load_state_dict({k: v.to(tr.device) for k, v in (sd.get("strategy") or {}).items()})
     tr.build_optimizers()
     # deep copy: Optimizer.load_state_dict keeps the given tensors, and Adam updates its
     # moments and step counts in place, which would rewrite a rollback snapshot

@@ -21,11 +21,13 @@ from .. import backends
 from ..backends import Backend
 from ..data.types import Scene
 from ..models.volumetric import SplatModel
+from .adc import ADCConfig  # importing adc and mcmc registers their strategies
 from .guard import Guard
 from .losses import photometric_loss, regularisers
-from .mcmc import MCMCConfig, MCMCStrategy
+from .mcmc import MCMCConfig
 from .optim import PrimitiveAdam
 from .state import load_trainer_state, trainer_state
+from .strategies import make_strategy
 
 #: TrainConfig.mcmc's fields, which config files written before it existed hold at the top level
 MCMC_FIELDS = tuple(f.name for f in fields(MCMCConfig))
@@ -55,9 +57,14 @@ class TrainConfig:
     means_lr: float = 1.6e-4
     means_lr_final: float = 1.6e-6
     sh_degree_interval: int = 1000
-    #: density control (refine_every / start / stop, noise_lr, split_scales, hold_growth ...);
+    #: density control: mcmc (DBS: relocate, grow to ``budget``) | adc (3DGS: clone, split,
+    #: prune, opacity reset; see splatk.train.strategies)
+    strategy: str = "mcmc"
+    #: MCMC's settings (refine_every / start / stop, noise_lr, split_scales, hold_growth ...);
     #: its cap is ``budget``
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
+    #: ADC's settings (densify_from / until / every, opacity_reset_every, grad_threshold ...)
+    adc: ADCConfig = field(default_factory=ADCConfig)
     #: multiplies every learning rate (primitives, colour, kernel networks); 1 = the defaults
     lr_scale: float = 1.0
     #: multiplies the log-scale learning rate alone. 0.005 is tuned for 30k iterations; short
@@ -84,7 +91,8 @@ class TrainConfig:
         d = dict(d)
         mcmc = dict(d.pop("mcmc", None) or {})
         mcmc.update({k: d.pop(k) for k in MCMC_FIELDS if k in d})
-        return cls(mcmc=MCMCConfig(**mcmc), **d)
+        adc_settings = d.pop("adc", None) or {}
+        return cls(mcmc=MCMCConfig(**mcmc), adc=ADCConfig(**adc_settings), **d)
 
 
 @dataclass
@@ -119,7 +127,7 @@ class Trainer:
         self.view_gen = torch.Generator().manual_seed(config.seed)
         self.mcmc_gen = torch.Generator(device=self.device).manual_seed(config.seed + 1)
         self.view_queue: list[int] = []
-        self.strategy = MCMCStrategy(config.mcmc, cap_max=config.budget)
+        self.strategy = make_strategy(config, self.extent)
         self.guard = Guard(self)
         self.build_optimizers()
         self.targets = [c.image_float(self.device) for c in scene.train]
@@ -185,6 +193,7 @@ class Trainer:
             if self.net_opt is not None:
                 self.net_opt.zero_grad(set_to_none=True)
             loss.backward()
+            self.strategy.observe(self.it, self.model, out, cam)
             self.opt.step()
             if self.net_opt is not None and any(g["lr"] > 0 for g in self.net_opt.param_groups):
                 self.net_opt.step()
