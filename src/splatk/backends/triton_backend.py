@@ -1,0 +1,178 @@
+"""The ``cuda`` backend: the tile rasteriser in Triton (:mod:`.triton_raster`) on CUDA tensors.
+
+Projection, SH colour, SSIM, the planar rasteriser and the image splats stay the ``torch``
+backend's ops on the device (inherited: no host round trips). Under Triton's interpreter
+(``TRITON_INTERPRET=1``) the same kernels run on CPU tensors, which is how they are tested
+without a GPU; ``auto`` never prefers the interpreter over the native ``cpu`` backend.
+
+One render: per-primitive tile ranges from the support ellipse's pixel box, one (tile, depth
+rank) key per (primitive, tile) pair sorted on the device (a radix sort on CUDA), per-tile
+ranges by ``searchsorted``, then one program per 16x16 tile forward and backward. The only
+host synchronisation is the number of pairs, which sizes the pair buffers.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+
+import torch
+
+from .registry import register_backend
+from .torch_backend import TorchBackend
+from .torch_ref import support_bboxes
+from .types import T_MIN, TILE_SIZE, Profile, RasterOutput
+
+#: colour channels the kernels take (a padded vector of lanes); more falls back to torch
+MAX_CHANNELS = 64
+
+
+def interpreter_enabled() -> bool:
+    """Whether Triton runs its kernels in the interpreter (on CPU tensors)."""
+    return os.environ.get("TRITON_INTERPRET", "0").lower() in ("1", "true", "on", "yes")
+
+
+def triton_missing_reason() -> str | None:
+    if importlib.util.find_spec("triton") is None:
+        return "Triton is not installed; pip install 'splatk[gpu]' (CUDA builds of torch bring it)"
+    return None
+
+
+def bin_pairs(means2d: torch.Tensor, conics: torch.Tensor, depths: torch.Tensor, width: int,
+              height: int):
+    """Sort (primitive, tile) pairs by (tile, depth) and find each tile's range.
+
+    Returns:
+        flat_ids: int32 [P] primitive index per pair, tile-major and front to back in a tile.
+        tile_offsets: int32 [tiles + 1]; tile t owns ``flat_ids[tile_offsets[t]:tile_offsets[t+1]]``.
+        tiles_x: tiles per row.
+    """
+    device = means2d.device
+    n = means2d.shape[0]
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    num_tiles = tiles_x * tiles_y
+    # depth rank with a stable tie-break by index, as every backend composites
+    order = torch.sort(depths, stable=True).indices
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(n, device=device)
+    x0, x1, y0, y1 = support_bboxes(means2d, conics, width, height)
+    tx0, ty0 = x0 // TILE_SIZE, y0 // TILE_SIZE
+    tx1 = (x1 + TILE_SIZE - 1) // TILE_SIZE
+    ty1 = (y1 + TILE_SIZE - 1) // TILE_SIZE
+    tw = (tx1 - tx0).clamp_min(0)
+    counts = tw * (ty1 - ty0).clamp_min(0)
+    counts = torch.where((x1 > x0) & (y1 > y0), counts, torch.zeros_like(counts))
+    ends = torch.cumsum(counts, 0)
+    # the one host sync of a render: the pair count sizes the buffers below
+    total = int(ends[-1]) if n else 0
+    if total == 0:
+        return (torch.zeros(0, dtype=torch.int32, device=device),
+                torch.zeros(num_tiles + 1, dtype=torch.int32, device=device), tiles_x)
+    prim = torch.repeat_interleave(torch.arange(n, device=device), counts, output_size=total)
+    local = torch.arange(total, device=device) - (ends - counts)[prim]
+    tile = (ty0[prim] + local // tw[prim]) * tiles_x + tx0[prim] + local % tw[prim]
+    keys = torch.sort(tile * n + rank[prim]).values
+    flat_ids = order[keys % n].to(torch.int32)
+    tile_offsets = torch.searchsorted(keys // n, torch.arange(num_tiles + 1, device=device))
+    return flat_ids, tile_offsets.to(torch.int32), tiles_x
+
+
+class _TritonRasterize(torch.autograd.Function):
+    """Forward and backward kernels of one render; gradients for every float input."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, params, background, depths, kind, k,
+                width, height):
+        from . import triton_raster as tr
+
+        device, n, channels = means2d.device, colors.shape[0], colors.shape[1]
+        means2d, conics, opacities, colors, params, background = (
+            t.detach().contiguous() for t in (means2d, conics, opacities, colors, params, background))
+        flat_ids, tile_offsets, tiles_x = bin_pairs(means2d, conics, depths.detach(), width, height)
+        num_tiles = tile_offsets.numel() - 1
+        img = torch.empty(height * width, channels, device=device, dtype=torch.float32)
+        t_final = torch.empty(height * width, device=device, dtype=torch.float32)
+        n_contrib = torch.empty(height * width, device=device, dtype=torch.int32)
+        consts = tr.launch_constants(kind, k, channels)
+        tr.rasterize_fwd_kernel[(num_tiles,)](
+            means2d, conics, opacities, colors, params, background, tile_offsets, flat_ids,
+            img, t_final, n_contrib, width, height, tiles_x, channels, T_STOP=T_MIN, **consts)
+        ctx.save_for_backward(means2d, conics, opacities, colors, params, background, tile_offsets,
+                              flat_ids, t_final, n_contrib)
+        ctx.meta = (kind, k, width, height, tiles_x, n)
+        return img.view(height, width, channels), (1.0 - t_final).view(height, width, 1)
+
+    @staticmethod
+    def backward(ctx, v_img, v_alpha):
+        from . import triton_raster as tr
+
+        (means2d, conics, opacities, colors, params, background, tile_offsets, flat_ids, t_final,
+         n_contrib) = ctx.saved_tensors
+        kind, k, width, height, tiles_x, n = ctx.meta
+        channels = colors.shape[1]
+        v_img = v_img.contiguous().view(height * width, channels)
+        v_alpha = v_alpha.contiguous().view(height * width)
+        g_means, g_conics = torch.zeros_like(means2d), torch.zeros_like(conics)
+        g_opac, g_colors, g_params = (torch.zeros_like(opacities), torch.zeros_like(colors),
+                                      torch.zeros_like(params))
+        consts = tr.launch_constants(kind, k, channels)
+        tr.rasterize_bwd_kernel[(tile_offsets.numel() - 1,)](
+            means2d, conics, opacities, colors, params, background, tile_offsets, flat_ids, t_final,
+            n_contrib, v_img, v_alpha, g_means, g_conics, g_opac, g_colors, g_params,
+            width, height, tiles_x, channels, KP=_next_pow2(k), **consts)
+        g_background = (v_img * t_final[:, None]).sum(0)
+        g_params = g_params if ctx.needs_input_grad[4] else None
+        return g_means, g_conics, g_opac, g_colors, g_params, g_background, None, None, None, None, None
+
+
+def _next_pow2(x: int) -> int:
+    return 1 << max(0, (int(x) - 1).bit_length())
+
+
+def rasterize_triton(means2d, conics, opacities, colors, depths, profile: Profile, width: int,
+                     height: int, background) -> RasterOutput:
+    """The Triton tile rasteriser (float32); same contract and gradients as ``rasterize_torch``."""
+    n = means2d.shape[0]
+    if profile.kind == "gaussian" or profile.params is None:
+        params, k = torch.zeros(max(n, 1), 1, device=means2d.device, dtype=torch.float32), 1
+    else:
+        params, k = profile.params, profile.params.shape[1]
+    colors_out, alphas = _TritonRasterize.apply(
+        means2d, conics, opacities, colors, params, background.to(colors.dtype), depths, profile.kind,
+        k, int(width), int(height))
+    return RasterOutput(colors_out, alphas)
+
+
+@register_backend("cuda")
+class TritonBackend(TorchBackend):
+    """Triton kernels on CUDA tensors; every op it has no kernel for is the torch backend's.
+
+    Float32 renders with at most ``MAX_CHANNELS`` colour channels run the Triton rasteriser;
+    other dtypes and channel counts (and a render with no pixels) use the torch rasteriser.
+    """
+
+    # above torch (auto takes it on CUDA devices), below the native cpu backend, so that an
+    # interpreter left enabled on a CPU machine is never auto's choice there
+    priority = 5
+
+    @classmethod
+    def unavailable_reason(cls, device: torch.device) -> str | None:
+        missing = triton_missing_reason()
+        if missing is not None:
+            return missing
+        if device.type == "cuda":
+            return None
+        if device.type == "cpu" and interpreter_enabled():
+            return None
+        return (f"it renders CUDA tensors only, not {device.type} (TRITON_INTERPRET=1 runs its kernels "
+                "on the CPU, slowly, for testing); use --backend cpu, torch or auto")
+
+    def rasterize(self, means2d, conics, opacities, colors, depths, profile: Profile, width, height,
+                  background) -> RasterOutput:
+        floats = [means2d, conics, opacities, colors] + ([profile.params] if profile.params is not None else [])
+        if (any(t.dtype != torch.float32 for t in floats) or not 1 <= colors.shape[1] <= MAX_CHANNELS
+                or int(width) * int(height) == 0):
+            return super().rasterize(means2d, conics, opacities, colors, depths, profile, width, height,
+                                     background)
+        return rasterize_triton(means2d, conics, opacities, colors, depths, profile, width, height,
+                                background)
