@@ -60,7 +60,7 @@ def cli(ctx: click.Context, verbose: bool) -> None:
 def _register() -> None:
     import importlib
 
-    for name in ("fit", "evaluate", "export", "compare", "pretrain", "image", "image_decode", "sfm", "bench", "demo"):
+    for name in ("fit", "evaluate", "export", "compare", "pretrain", "image", "image_decode", "sfm", "bench", "demo", "selftest"):
         try:
             mod = importlib.import_module(f"splatk_cli.{name}")
         except ModuleNotFoundError as e:

@@ -164,8 +164,8 @@ class TritonBackend(TorchBackend):
             return None
         if device.type == "cpu" and interpreter_enabled():
             return None
-        return (f"it renders CUDA tensors only, not {device.type} (TRITON_INTERPRET=1 runs its kernels "
-                "on the CPU, slowly, for testing); use --backend cpu, torch or auto")
+        return (f"it renders CUDA tensors only, not {device.type}; use --backend cpu, torch or auto "
+                "(TRITON_INTERPRET=1 runs its kernels on the CPU, slowly, for testing)")
 
     def rasterize(self, means2d, conics, opacities, colors, depths, profile: Profile, width, height,
                   background) -> RasterOutput:
