@@ -68,7 +68,9 @@ def _profile(r2, g, params_ptr, inside, KIND: tl.constexpr, K: tl.constexpr, GS2
         d0 = tl.load(params_ptr + g * K + idx, mask=inside, other=0.0)
         d1 = tl.load(params_ptr + g * K + idx + 1, mask=inside, other=0.0)
         prof = (1.0 - lam) * d0 + lam * d1
-    return prof
+    # outside the support the formulas may overflow (a degenerate conic's r2 < 0): 0 there, so
+    # that a masked pixel's 0 upstream gradient times the profile stays 0, not NaN
+    return tl.where(inside, prof, 0.0)
 
 
 @triton.jit
