@@ -210,9 +210,14 @@ def rasterize_bwd_kernel(
 
 
 def launch_constants(kind: str, k: int, channels: int) -> dict:
-    """The compile-time arguments both kernels share for a profile and channel count."""
+    """The compile-time arguments both kernels share for a profile and channel count.
+
+    Fused multiply-adds are off: r2 and the profile then round exactly as the torch reference's
+    separate ops do, so a pixel on the support's edge (r2 near 1, where a profile can jump from
+    0.011 * o to 0) is inside or outside in both alike.
+    """
     return dict(KIND=PROFILE_CODES[kind], K=k, CP=triton.next_power_of_2(max(channels, 1)), TILE=TILE_SIZE,
-                GS2=_GS2, TS2=_TS2, A_MAX=ALPHA_MAX, A_MIN=ALPHA_MIN)
+                GS2=_GS2, TS2=_TS2, A_MAX=ALPHA_MAX, A_MIN=ALPHA_MIN, enable_fp_fusion=False)
 
 
 __all__ = ["PROFILE_CODES", "T_MIN", "launch_constants", "rasterize_bwd_kernel", "rasterize_fwd_kernel"]
