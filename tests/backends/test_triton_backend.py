@@ -5,7 +5,8 @@ Triton decides between compiling and interpreting a function when it is defined,
 its own library functions on import, so the variable is set while this module imports Triton
 and again while its tests run (a fixture), but no longer: no other test sees the interpreter. The interpreter is slow (a few seconds per render and backward of a dozen
 tiles), so the scenes are the small ones of the cpu backend's parity test. ``splatk selftest``
-is run through the CLI for the cuda and cpu backends.
+is run through the CLI for the cuda and cpu backends. The planar rasteriser has Triton kernels
+too and is checked the same way; the image splats are the torch backend's op.
 """
 from __future__ import annotations
 
@@ -94,6 +95,28 @@ def test_cuda_matches_torch_reference(scene_name, profile_id):
                                    msg=lambda m, name=name: f"gradient of {name}: {m}")
 
 
+@pytest.mark.parametrize("kind,grid", [("gaussian_surfel", 0), ("grid", 6)])
+def test_cuda_planar_matches_torch_reference(kind, grid):
+    """The planar rasteriser's Triton kernels: image and the gradients of every input, through
+    the homographies to means, quats and scales (the native planar test's scene and body)."""
+    from test_planar_cpu import _render, random_scene
+
+    scene, table = random_scene(20, seed=0, grid=grid)
+    bg = torch.rand(3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    ref, ref_grads = _render(scene, table, kind, "torch", torch.float32, bg)
+    scene = {k: v.to(DEVICE) for k, v in scene.items()}
+    got, got_grads = _render(scene, None if table is None else table.to(DEVICE), kind, "cuda", torch.float32,
+                             bg.to(DEVICE))
+    tol = TOLERANCES["planar"]
+    torch.testing.assert_close(got.colors.detach().cpu(), ref.colors.detach(), rtol=0, atol=tol["image"])
+    torch.testing.assert_close(got.alphas.detach().cpu(), ref.alphas.detach(), rtol=0, atol=tol["image"])
+    assert set(got_grads) == set(ref_grads)
+    for name, ref_grad in ref_grads.items():
+        scale = max(float(ref_grad.abs().max()), 1e-6)
+        torch.testing.assert_close(got_grads[name].cpu(), ref_grad, rtol=0, atol=tol["grad"] * scale,
+                                   msg=lambda m, name=name: f"gradient of {name}: {m}")
+
+
 def test_triton_kernels_run_not_the_torch_fallback(monkeypatch):
     """The parity above is the Triton kernels' (a float32 render must not reach the torch path)."""
     from splatk.backends.torch_backend import TorchBackend
@@ -102,9 +125,16 @@ def test_triton_kernels_run_not_the_torch_fallback(monkeypatch):
         raise AssertionError("the cuda backend fell back to the torch rasteriser")
 
     monkeypatch.setattr(TorchBackend, "rasterize", refuse)
+    monkeypatch.setattr(TorchBackend, "rasterize_planar", refuse)
+    be = backends.get("cuda", DEVICE)
     means, conics, opac, colors, depths, w, h = _on(make_scene("single"), DEVICE)
-    out = backends.get("cuda", DEVICE).rasterize(means, conics, opac, colors, depths,
-                                                 backends.Profile("gaussian"), w, h, torch.zeros(3, device=DEVICE))
+    out = be.rasterize(means, conics, opac, colors, depths, backends.Profile("gaussian"), w, h,
+                       torch.zeros(3, device=DEVICE))
+    assert float(out.alphas.max()) > 0.5
+    disk = [torch.tensor(v, device=DEVICE) for v in ([[0.0, 0.0, 3.0]], [[1.0, 0.0, 0.0, 0.0]], [[0.3, 0.2]],
+                                                     [0.9], [[1.0, 0.5, 0.2]])]
+    K = torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]], device=DEVICE)
+    out = be.rasterize_planar(*disk, torch.eye(4, device=DEVICE), K, 16, 16, backends.PlanarProfile("gaussian_surfel"))
     assert float(out.alphas.max()) > 0.5
 
 
@@ -157,6 +187,8 @@ def test_selftest_json_passes(name):
     assert report["max_image_error"] == max(c["image_error"] for c in cases.values())
     # the Triton rasteriser is the cuda backend's own op and really differs from the reference
     assert cases["raster_beta"]["own_op"] and 0 < cases["raster_beta"]["grad_error"] <= TOL["grad"]
+    if name == "cuda":  # planar kernels of its own; the image splats are the torch op
+        assert cases["planar_grid"]["own_op"] and not cases["image_gaussian"]["own_op"]
 
 
 def test_selftest_fails_a_wrong_backend(monkeypatch):

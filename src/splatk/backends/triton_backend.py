@@ -1,7 +1,8 @@
-"""The ``cuda`` backend: the tile rasteriser in Triton (:mod:`.triton_raster`) on CUDA tensors.
+"""The ``cuda`` backend: tile rasterisers in Triton on CUDA tensors, for splats
+(:mod:`.triton_raster`) and planar splats (:mod:`.triton_planar`).
 
-Projection, SH colour, SSIM, the planar rasteriser and the image splats stay the ``torch``
-backend's ops on the device (inherited: no host round trips). Under Triton's interpreter
+Projection, SH colour, SSIM and the image splats stay the ``torch`` backend's ops on the device
+(inherited: no host round trips). Under Triton's interpreter
 (``TRITON_INTERPRET=1``) the same kernels run on CPU tensors, which is how they are tested
 without a GPU; ``auto`` never prefers the interpreter over the native ``cpu`` backend.
 
@@ -20,7 +21,7 @@ import torch
 from .registry import register_backend
 from .torch_backend import TorchBackend
 from .torch_ref import support_bboxes
-from .types import T_MIN, TILE_SIZE, Profile, RasterOutput
+from .types import T_MIN, TILE_SIZE, PlanarProfile, Profile, RasterOutput
 
 #: colour channels the kernels take (a padded vector of lanes); more falls back to torch
 MAX_CHANNELS = 64
@@ -46,16 +47,21 @@ def bin_pairs(means2d: torch.Tensor, conics: torch.Tensor, depths: torch.Tensor,
         tile_offsets: int32 [tiles + 1]; tile t owns ``flat_ids[tile_offsets[t]:tile_offsets[t+1]]``.
         tiles_x: tiles per row.
     """
-    device = means2d.device
     n = means2d.shape[0]
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-    num_tiles = tiles_x * tiles_y
     # depth rank with a stable tie-break by index, as every backend composites
     order = torch.sort(depths, stable=True).indices
     rank = torch.empty_like(order)
-    rank[order] = torch.arange(n, device=device)
+    rank[order] = torch.arange(n, device=means2d.device)
     x0, x1, y0, y1 = support_bboxes(means2d, conics, width, height)
+    return bin_boxes(x0, x1, y0, y1, rank, order, width, height)
+
+
+def bin_boxes(x0, x1, y0, y1, rank, order, width: int, height: int):
+    """:func:`bin_pairs` for given half-open pixel boxes [x0, x1) x [y0, y1) (int64 [N] each),
+    depth ranks ``rank`` and their inverse ``order`` (primitive of each rank)."""
+    device, n = x0.device, x0.shape[0]
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    num_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
     tx0, ty0 = x0 // TILE_SIZE, y0 // TILE_SIZE
     tx1 = (x1 + TILE_SIZE - 1) // TILE_SIZE
     ty1 = (y1 + TILE_SIZE - 1) // TILE_SIZE
@@ -147,8 +153,8 @@ def rasterize_triton(means2d, conics, opacities, colors, depths, profile: Profil
 class TritonBackend(TorchBackend):
     """Triton kernels on CUDA tensors; every op it has no kernel for is the torch backend's.
 
-    Float32 renders with at most ``MAX_CHANNELS`` colour channels run the Triton rasteriser;
-    other dtypes and channel counts (and a render with no pixels) use the torch rasteriser.
+    Float32 renders with at most ``MAX_CHANNELS`` colour channels run the Triton rasterisers;
+    other dtypes and channel counts (and a render with no pixels) use the torch ones.
     """
 
     # above torch (auto takes it on CUDA devices), below the native cpu backend, so that an
@@ -176,3 +182,22 @@ class TritonBackend(TorchBackend):
                                      background)
         return rasterize_triton(means2d, conics, opacities, colors, depths, profile, width, height,
                                 background)
+
+    def rasterize_planar(self, means, quats, scales, opacities, colors, viewmat, K, width, height,
+                         profile: PlanarProfile, background=None) -> RasterOutput:
+        floats = [means, quats, scales, opacities, colors, viewmat, K]
+        grid_ok = profile.kind != "grid" or (profile.table is not None and profile.table.dim() == 3
+                                             and profile.table.shape[-1] >= 2)
+        if profile.table is not None:
+            floats.append(profile.table)
+        if (any(t.dtype != torch.float32 for t in floats) or not 1 <= colors.shape[1] <= MAX_CHANNELS
+                or profile.kind not in ("gaussian_surfel", "grid") or not grid_ok
+                or int(width) * int(height) == 0):
+            return super().rasterize_planar(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                            profile, background)
+        from .triton_planar import rasterize_planar_triton
+
+        if background is None:
+            background = torch.zeros(colors.shape[1], device=colors.device, dtype=colors.dtype)
+        return rasterize_planar_triton(means, quats, scales, opacities, colors, viewmat, K, int(width),
+                                       int(height), profile, background)
