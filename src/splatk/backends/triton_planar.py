@@ -16,7 +16,7 @@ import triton.language as tl
 
 from .planar_cpu import planar_bboxes
 from .planar_torch import planar_visible
-from .triton_backend import bin_boxes
+from .triton_binning import bin_boxes
 from .types import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, PlanarProfile, RasterOutput
 
 KIND_CODES = {"gaussian_surfel": 0, "grid": 1}
