@@ -5,8 +5,8 @@ Triton decides between compiling and interpreting a function when it is defined,
 its own library functions on import, so the variable is set while this module imports Triton
 and again while its tests run (a fixture), but no longer: no other test sees the interpreter. The interpreter is slow (a few seconds per render and backward of a dozen
 tiles), so the scenes are the small ones of the cpu backend's parity test. ``splatk selftest``
-is run through the CLI for the cuda and cpu backends. The planar rasteriser has Triton kernels
-too and is checked the same way; the image splats are the torch backend's op.
+is run through the CLI for the cuda and cpu backends. The planar rasteriser and the image
+splats have Triton kernels too and are checked the same way.
 """
 from __future__ import annotations
 
@@ -31,6 +31,10 @@ else:
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_cpu_backend import PROFILES, make_profile_params, make_scene, render_with_grads  # noqa: E402
+from test_image_cpu import _splats  # noqa: E402
+from test_planar_cpu import H as H_PLANAR  # noqa: E402
+from test_planar_cpu import W as W_PLANAR  # noqa: E402
+from test_planar_cpu import random_scene  # noqa: E402
 
 from splatk import backends  # noqa: E402
 from splatk.errors import BackendUnavailable  # noqa: E402
@@ -43,7 +47,7 @@ TOL = TOLERANCES["raster"]
 # takes 3-10 s per case on 2 cores). "overlap48" is the first 48 of the overlap scene's 400
 # splats: still 4 channels, early termination, the alpha clamp and depth ties.
 CASES = ([(s, p) for s in ("single", "sparse", "empty") for p in PROFILES]
-         + [("offscreen", "student_t"), ("offscreen", "table20"), ("overlap48", "beta"),
+         + [("offscreen", "student_t"), ("overlap48", "beta"),
             ("tile_borders", "table8")])
 
 
@@ -96,50 +100,64 @@ def test_cuda_matches_torch_reference(scene_name, profile_id):
                                    msg=lambda m, name=name: f"gradient of {name}: {m}")
 
 
+def _weighted_sum(*outs):
+    """A fixed random weighting of the outputs (drawn on the CPU: the same on every device)."""
+    gen = torch.Generator().manual_seed(7)
+    return sum((o * torch.randn(o.shape, generator=gen).to(o.device)).sum() for o in outs)
+
+
+def _planar_render(scene, table, kind, backend, bg):
+    leaves = {k: v.to(DEVICE).requires_grad_(k not in ("viewmat", "K")) for k, v in scene.items()}
+    tab = None if table is None else table.to(DEVICE).requires_grad_(True)
+    bgl = bg.to(DEVICE).requires_grad_(True)
+    out = backends.get(backend, DEVICE).rasterize_planar(
+        leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"], leaves["viewmat"],
+        leaves["K"], W_PLANAR, H_PLANAR, backends.PlanarProfile(kind, tab), bgl)
+    _weighted_sum(out.colors, out.alphas).backward()
+    grads = {k: leaves[k].grad.cpu() for k in ("means", "quats", "scales", "opacities", "colors")}
+    grads["background"] = bgl.grad.cpu()
+    if tab is not None:
+        grads["table"] = tab.grad.cpu()
+    return out.colors.detach().cpu(), out.alphas.detach().cpu(), grads
+
+
 @pytest.mark.parametrize("kind,grid", [("gaussian_surfel", 0), ("grid", 6)])
 def test_cuda_planar_matches_torch_reference(kind, grid):
     """The planar rasteriser's Triton kernels: image and the gradients of every input, through
-    the homographies to means, quats and scales (the native planar test's scene and body)."""
-    from test_planar_cpu import _render, random_scene
-
-    scene, table = random_scene(20, seed=0, grid=grid)
-    bg = torch.rand(3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-    ref, ref_grads = _render(scene, table, kind, "torch", torch.float32, bg)
-    scene = {k: v.to(DEVICE) for k, v in scene.items()}
-    got, got_grads = _render(scene, None if table is None else table.to(DEVICE), kind, "cuda", torch.float32,
-                             bg.to(DEVICE))
+    the homographies to means, quats and scales (the native planar test's scene)."""
+    scene, table = random_scene(20, seed=0, dtype=torch.float32, grid=grid)
+    bg = torch.rand(3, generator=torch.Generator().manual_seed(3))
+    ref = _planar_render(scene, table, kind, "torch", bg)
+    got = _planar_render(scene, table, kind, "cuda", bg)
     tol = TOLERANCES["planar"]
-    torch.testing.assert_close(got.colors.detach().cpu(), ref.colors.detach(), rtol=0, atol=tol["image"])
-    torch.testing.assert_close(got.alphas.detach().cpu(), ref.alphas.detach(), rtol=0, atol=tol["image"])
-    assert set(got_grads) == set(ref_grads)
-    for name, ref_grad in ref_grads.items():
+    torch.testing.assert_close(got[0], ref[0], rtol=0, atol=tol["image"])
+    torch.testing.assert_close(got[1], ref[1], rtol=0, atol=tol["image"])
+    assert set(got[2]) == set(ref[2])
+    for name, ref_grad in ref[2].items():
         scale = max(float(ref_grad.abs().max()), 1e-6)
-        torch.testing.assert_close(got_grads[name].cpu(), ref_grad, rtol=0, atol=tol["grad"] * scale,
+        torch.testing.assert_close(got[2][name], ref_grad, rtol=0, atol=tol["grad"] * scale,
                                    msg=lambda m, name=name: f"gradient of {name}: {m}")
 
 
-def test_model_render_with_the_learned_kernel_matches_torch():
-    """A SplatModel's render through the cuda backend (projection, SH, the learned kernel's
-    table profile, the Triton rasteriser): image and every parameter's gradient, as torch's."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from scenes import orbit_cameras, random_model
-
-    torch.manual_seed(0)
-    model, cam = random_model(30, seed=1, kernel="learned"), orbit_cameras(3, size=24)[1]
-    results = []
-    for name in ("torch", "cuda"):
-        m = copy.deepcopy(model).to(DEVICE)
-        bg = torch.tensor([1.0, 1.0, 1.0], device=DEVICE)
-        img = m.render(cam, bg, sh_degree=1, backend=backends.get(name, DEVICE)).image
-        (img * torch.linspace(-1.0, 1.0, img.numel(), device=DEVICE).reshape(img.shape)).sum().backward()
-        results.append((img.detach().cpu(), {n: p.grad.cpu() for n, p in m.named_parameters() if p.grad is not None}))
-    (img_ref, grads_ref), (img_got, grads_got) = results
-    assert img_ref.std() > 0.01  # the view draws something
-    torch.testing.assert_close(img_got, img_ref, rtol=0, atol=TOL["image"])
-    assert grads_got.keys() == grads_ref.keys() and grads_ref
+@pytest.mark.parametrize("kernel", ["gaussian", "gabor", "learned"])
+def test_cuda_image_splats_match_the_torch_path(kernel):
+    """The image splats' Triton op against the model's torch path (the native image test's
+    splats, smaller): image and every parameter's gradient."""
+    splats, results = _splats(kernel, torch.float32, n=30, h=24, w=32), []
+    for backend in ("torch", "cuda"):
+        model = copy.deepcopy(splats).to(DEVICE)
+        model.backend = backend
+        img = model.render()
+        _weighted_sum(img).backward()
+        results.append((img.detach().cpu(), {n: p.grad.cpu() for n, p in model.named_parameters()}))
+    assert model.uses_native()
+    (img_ref, grads_ref), (img, grads) = results
+    tol = TOLERANCES["image"]
+    torch.testing.assert_close(img, img_ref, rtol=0, atol=tol["image"])
     for name, ref in grads_ref.items():
-        torch.testing.assert_close(grads_got[name], ref, rtol=0, atol=TOL["grad"] * float(ref.abs().max()) + 1e-9,
-                                   msg=lambda m, name=name: f"{name}: {m}")
+        scale = float(ref.abs().max())
+        assert scale > 0, f"{name}: the test passes no gradient"
+        torch.testing.assert_close(grads[name], ref, rtol=0, atol=tol["grad"] * scale, msg=name)
 
 
 def test_triton_kernels_run_not_the_torch_fallback(monkeypatch):
@@ -212,8 +230,8 @@ def test_selftest_json_passes(name):
     assert report["max_image_error"] == max(c["image_error"] for c in cases.values())
     # the Triton rasteriser is the cuda backend's own op and really differs from the reference
     assert cases["raster_beta"]["own_op"] and 0 < cases["raster_beta"]["grad_error"] <= TOL["grad"]
-    if name == "cuda":  # planar kernels of its own; the image splats are the torch op
-        assert cases["planar_grid"]["own_op"] and not cases["image_gaussian"]["own_op"]
+    assert {"image_gabor", "image_learned"} <= set(cases)
+    assert cases["planar_grid"]["own_op"] and cases["image_learned"]["own_op"]
 
 
 def test_selftest_fails_a_wrong_backend(monkeypatch):

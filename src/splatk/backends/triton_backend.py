@@ -1,8 +1,9 @@
-"""The ``cuda`` backend: tile rasterisers in Triton on CUDA tensors, for splats
-(:mod:`.triton_raster`) and planar splats (:mod:`.triton_planar`).
+"""The ``cuda`` backend: tile kernels in Triton on CUDA tensors, for splats
+(:mod:`.triton_raster`), planar splats (:mod:`.triton_planar`) and the 2D image splats
+(:mod:`.triton_image`).
 
-Projection, SH colour, SSIM and the image splats stay the ``torch`` backend's ops on the device
-(inherited: no host round trips). Under Triton's interpreter
+Projection, SH colour and SSIM stay the ``torch`` backend's ops on the device (inherited: no
+host round trips). Under Triton's interpreter
 (``TRITON_INTERPRET=1``) the same kernels run on CPU tensors, which is how they are tested
 without a GPU; ``auto`` never prefers the interpreter over the native ``cpu`` backend.
 
@@ -156,3 +157,8 @@ class TritonBackend(TorchBackend):
             background = torch.zeros(colors.shape[1], device=colors.device, dtype=colors.dtype)
         return rasterize_planar_triton(means, quats, scales, opacities, colors, viewmat, K, int(width),
                                        int(height), profile, background)
+
+    def render_image_splats(self, means, chol, colors, extras, bbox, kind, aux, width, height) -> torch.Tensor:
+        from .triton_image import render_image_splats_triton
+
+        return render_image_splats_triton(means, chol, colors, extras, bbox, kind, aux, width, height)
