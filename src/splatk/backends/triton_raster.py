@@ -8,7 +8,8 @@ The backward walks each pixel's list back to front from its last blended primiti
 does: the transmittance before a primitive is recovered as ``T / (1 - alpha)`` and the colour
 of everything behind it is summed as it goes, so ``dL/dalpha`` needs no subtraction of two
 nearly equal sums. Per-primitive gradients are summed over the tile's pixels in the program
-and added to global memory with one atomic add per (primitive, tile, quantity).
+and added to global memory with one atomic add per (primitive, tile, quantity): on a GPU the
+order of those adds varies, so gradients are not bit-identical from run to run.
 
 Profiles are compiled in (``KIND``: 0 gaussian, 1 beta, 2 student_t, 3 table with ``K``
 samples); colour channels are a padded vector of ``CP`` (the next power of two >= C) lanes.
