@@ -2,9 +2,19 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 import click
+
+
+def _finite_or_none(value):
+    """JSON has no infinity: an infinite error (a NaN difference) is printed as null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    return value
 
 
 @click.command("selftest")
@@ -26,7 +36,7 @@ def command(backend: str, as_json: bool) -> None:
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--backend") from None
     if as_json:
-        click.echo(json.dumps(result, indent=2))
+        click.echo(json.dumps(_finite_or_none(result), indent=2, allow_nan=False))
     else:
         for name, report in result["backends"].items():
             for case, r in report["cases"].items():

@@ -246,11 +246,25 @@ def test_selftest_fails_a_wrong_backend(monkeypatch):
             out = super().rasterize(*args)
             return out._replace(colors=out.colors * 0.99)
 
+    class NanPlanar(TorchBackend):
+        name = "nan_planar"
+
+        def rasterize_planar(self, *args):
+            out = super().rasterize_planar(*args)
+            return out._replace(colors=out.colors * float("nan"))
+
     monkeypatch.setitem(BACKENDS, "darker", Darker)
+    monkeypatch.setitem(BACKENDS, "nan_planar", NanPlanar)
     res = _selftest(["--backend", "darker"])
     assert res.exit_code == 1, res.output
     assert "darker (cuda): FAIL" in res.output if ON_GPU else "darker (cpu): FAIL" in res.output
     assert "raster_gaussian" in res.output and "planar_grid" in res.output
+    # NaN images fail too, and the JSON stays JSON (the infinite error is null)
+    res = _selftest(["--backend", "nan_planar", "--json"])
+    assert res.exit_code == 1, res.output
+    cases = json.loads(res.output)["backends"]["nan_planar"]["cases"]
+    assert cases["planar_grid"]["passed"] is False and cases["planar_grid"]["image_error"] is None
+    assert cases["raster_gaussian"]["passed"] is True
 
 
 def test_selftest_named_unavailable_backend_is_one_line_error(monkeypatch):

@@ -160,7 +160,7 @@ def _run(backend: Backend, make_inputs: Callable, render: Callable) -> tuple[lis
     """Outputs and input gradients (on the CPU) of one render with fixed upstream gradients."""
     leaves, fixed = make_inputs()
     device = backend.device
-    fixed = {k: v.to(device) for k, v in fixed.items() if k != "kind"} | {"kind": fixed.get("kind")}
+    fixed = {k: v.to(device) if hasattr(v, "to") else v for k, v in fixed.items()}
     if "model" in fixed:
         x = dict(fixed["model"].named_parameters())
     else:
@@ -175,13 +175,17 @@ def _run(backend: Backend, make_inputs: Callable, render: Callable) -> tuple[lis
 
 def compare(got: tuple[list, dict], ref: tuple[list, dict]) -> tuple[float, float]:
     """(max absolute output difference, max over inputs of the gradient difference relative to
-    the largest reference gradient)."""
-    image_error = max(float((g - r).abs().max()) if r.numel() else 0.0 for g, r in zip(got[0], ref[0]))
+    the largest reference gradient); a NaN difference counts as infinite."""
+
+    def worst(diff: torch.Tensor) -> float:
+        value = float(diff.abs().max()) if diff.numel() else 0.0
+        return math.inf if math.isnan(value) else value
+
+    image_error = max(worst(g - r) for g, r in zip(got[0], ref[0]))
     grad_error = 0.0
     for name, r in ref[1].items():
-        if r.numel():
-            scale = max(float(r.abs().max()), 1e-6)
-            grad_error = max(grad_error, float((got[1][name] - r).abs().max()) / scale)
+        scale = max(float(r.abs().max()), 1e-6) if r.numel() else 1.0
+        grad_error = max(grad_error, worst(got[1][name] - r) / scale)
     return image_error, grad_error
 
 
@@ -194,7 +198,7 @@ def backend_device(name: str) -> torch.device | None:
     return None
 
 
-def test_backend(name: str, only: list[str] | None = None) -> dict:
+def check_backend(name: str, only: list[str] | None = None) -> dict:
     """One backend's report: passed, device, max errors and each case's errors."""
     device = backend_device(name)
     if device is None:
@@ -238,7 +242,7 @@ def run_selftest(backend: str = "all", only: list[str] | None = None) -> dict:
         if backend == "all" and backend_device(name) is None:
             result["skipped"][name] = _reason(name)
             continue
-        result["backends"][name] = test_backend(name, only)
+        result["backends"][name] = check_backend(name, only)
     result["passed"] = all(r["passed"] for r in result["backends"].values())
     return result
 
