@@ -35,8 +35,10 @@ def _local(g, px, py, means_ptr, chol_ptr, bbox_ptr, width, height):
     by1 = tl.load(bbox_ptr + 4 * g + 3)
     dx = (px.to(tl.float32) + 0.5) - mx
     dy = (py.to(tl.float32) + 0.5) - my
-    u = dx / l11
-    v = (dy - l21 * u) / l22
+    # IEEE divisions (Triton's default one may be approximate): the torch path's rounding, so
+    # a pixel on the support's edge is inside or outside in both alike
+    u = tl.div_rn(dx, l11)
+    v = tl.div_rn(dy - l21 * u, l22)
     un = u * (1.0 / 3.0)
     vn = v * (1.0 / 3.0)
     r2 = un * un + vn * vn

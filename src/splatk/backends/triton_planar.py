@@ -27,7 +27,8 @@ _SURFEL_HALF_S2 = 4.5
 @triton.jit
 def _uv(g, px, py, M_ptr):
     """(u, v) where pixel centres' rays meet splat g's plane, normalised so the support is the
-    unit disk, with the intermediates the backward needs. Rounds as ``ray_splat_uv``."""
+    unit disk, with the intermediates the backward needs. Rounds as ``ray_splat_uv`` (with fused
+    multiply-adds off, see :func:`_constants`), so a pixel on a disk's edge is drawn alike."""
     m00 = tl.load(M_ptr + 9 * g)
     m01 = tl.load(M_ptr + 9 * g + 1)
     m02 = tl.load(M_ptr + 9 * g + 2)
@@ -48,9 +49,11 @@ def _uv(g, px, py, M_ptr):
     c0 = hu1 * hv2 - hu2 * hv1
     c1 = hu2 * hv0 - hu0 * hv2
     c2 = hu0 * hv1 - hu1 * hv0
-    big_u = c0 / c2
-    big_v = c1 / c2
-    return big_u / 3.0, big_v / 3.0, big_u, big_v, c2, x, y, hu0, hu1, hu2, hv0, hv1, hv2
+    # IEEE divisions (Triton's default one may be approximate), as torch's
+    big_u = tl.div_rn(c0, c2)
+    big_v = tl.div_rn(c1, c2)
+    return (tl.div_rn(big_u, 3.0), tl.div_rn(big_v, 3.0), big_u, big_v, c2, x, y, hu0, hu1, hu2, hv0, hv1,
+            hv2)
 
 
 @triton.jit

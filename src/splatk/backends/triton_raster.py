@@ -62,7 +62,7 @@ def _profile(r2, g, params_ptr, inside, KIND: tl.constexpr, K: tl.constexpr, GS2
         nu = tl.load(params_ptr + g)
         prof = tl.exp(-0.5 * (nu + 2.0) * tl.log(1.0 + TS2 * r2 / nu))
     else:
-        r = tl.sqrt(tl.maximum(r2, 1e-20))
+        r = tl.sqrt_rn(tl.maximum(r2, 1e-20))
         t = r * (K - 1)
         idx = tl.minimum(tl.maximum(t.to(tl.int32), 0), K - 2)
         lam = t - idx.to(tl.float32)
@@ -189,7 +189,7 @@ def rasterize_bwd_kernel(
             d_nu = prof * (-0.5 * tl.log(1.0 + u) + 0.5 * (nu + 2.0) * u / (nu * (1.0 + u)))
             tl.atomic_add(g_params_ptr + g, tl.sum(tl.where(active, v_prof * d_nu, 0.0), axis=0))
         else:
-            r = tl.sqrt(tl.maximum(r2, 1e-20))
+            r = tl.sqrt_rn(tl.maximum(r2, 1e-20))
             t = r * (K - 1)
             idx = tl.minimum(tl.maximum(t.to(tl.int32), 0), K - 2)
             lam = t - idx.to(tl.float32)
