@@ -100,6 +100,25 @@ def test_cuda_matches_torch_reference(scene_name, profile_id):
                                    msg=lambda m, name=name: f"gradient of {name}: {m}")
 
 
+def test_binning_lists_each_tiles_primitives_front_to_back():
+    """bin_pairs against a brute-force binning: per tile, the primitives whose support box
+    meets it, by depth with ties by index (the overlap scene has many equal depths)."""
+    from splatk.backends.torch_ref import support_bboxes
+    from splatk.backends.triton_binning import bin_pairs
+
+    means, conics, _, _, depths, w, h = make_scene("overlap")
+    flat_ids, offsets, tiles_x = bin_pairs(means, conics, depths, w, h)
+    x0, x1, y0, y1 = support_bboxes(means, conics, w, h)
+    tiles_y = (h + 15) // 16
+    assert offsets.numel() == tiles_x * tiles_y + 1 and int(offsets[-1]) == flat_ids.numel()
+    for t in range(tiles_x * tiles_y):
+        tx, ty = t % tiles_x, t // tiles_x
+        meets = ((x0 < 16 * tx + 16) & (x1 > 16 * tx) & (y0 < 16 * ty + 16) & (y1 > 16 * ty)
+                 & (x1 > x0) & (y1 > y0))
+        expected = sorted(torch.nonzero(meets).flatten().tolist(), key=lambda i: (float(depths[i]), i))
+        assert flat_ids[int(offsets[t]):int(offsets[t + 1])].tolist() == expected, t
+
+
 def _weighted_sum(*outs):
     """A fixed random weighting of the outputs (drawn on the CPU: the same on every device)."""
     gen = torch.Generator().manual_seed(7)

@@ -5,7 +5,7 @@
 Projection, SH colour and SSIM stay the ``torch`` backend's ops on the device (inherited: no
 host round trips). Under Triton's interpreter
 (``TRITON_INTERPRET=1``) the same kernels run on CPU tensors, which is how they are tested
-without a GPU; ``auto`` never prefers the interpreter over the native ``cpu`` backend.
+without a GPU; ``auto`` prefers the native ``cpu`` backend there.
 
 One render: per-primitive tile ranges from the support ellipse's pixel box, one (tile, depth
 rank) key per (primitive, tile) pair sorted on the device (a radix sort on CUDA), per-tile
@@ -47,7 +47,7 @@ class _TritonRasterize(torch.autograd.Function):
                 width, height):
         from . import triton_raster as tr
 
-        device, n, channels = means2d.device, colors.shape[0], colors.shape[1]
+        device, channels = means2d.device, colors.shape[1]
         means2d, conics, opacities, colors, params, background = (
             t.detach().contiguous() for t in (means2d, conics, opacities, colors, params, background))
         flat_ids, tile_offsets, tiles_x = bin_pairs(means2d, conics, depths.detach(), width, height)
@@ -61,7 +61,7 @@ class _TritonRasterize(torch.autograd.Function):
             img, t_final, n_contrib, width, height, tiles_x, channels, T_STOP=T_MIN, **consts)
         ctx.save_for_backward(means2d, conics, opacities, colors, params, background, tile_offsets,
                               flat_ids, t_final, n_contrib)
-        ctx.meta = (kind, k, width, height, tiles_x, n)
+        ctx.meta = (kind, k, width, height, tiles_x)
         return img.view(height, width, channels), (1.0 - t_final).view(height, width, 1)
 
     @staticmethod
@@ -70,7 +70,7 @@ class _TritonRasterize(torch.autograd.Function):
 
         (means2d, conics, opacities, colors, params, background, tile_offsets, flat_ids, t_final,
          n_contrib) = ctx.saved_tensors
-        kind, k, width, height, tiles_x, n = ctx.meta
+        kind, k, width, height, tiles_x = ctx.meta
         channels = colors.shape[1]
         v_img = v_img.contiguous().view(height * width, channels)
         v_alpha = v_alpha.contiguous().view(height * width)
@@ -113,8 +113,8 @@ class TritonBackend(TorchBackend):
     other dtypes and channel counts (and a render with no pixels) use the torch ones.
     """
 
-    # above torch (auto takes it on CUDA devices), below the native cpu backend, so that an
-    # interpreter left enabled on a CPU machine is never auto's choice there
+    # above torch (auto takes it on CUDA devices), below the native cpu backend (with the
+    # interpreter enabled on a CPU machine, auto still takes the native one there)
     priority = 5
 
     @classmethod
