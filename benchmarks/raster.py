@@ -1,7 +1,7 @@
 """Rasteriser benchmark: forward and forward+backward time and peak memory per backend.
 
     python benchmarks/raster.py [--quick] [--threads 2] [--reps 7] [--backends cpu,torch]
-                                [--omp-wait-policy passive] [--out PATH]
+                                [--omp-wait-policy passive] [--out PATH] [--device cuda]
 
 Scenes follow ../shared/reference/cpu-peers.md: N splats with centres uniform over the image,
 depths U(2, 8), two projected sigmas log-uniform in [0.5, 4] px at width 512 (scaled with the
@@ -14,6 +14,11 @@ getrusage's maxrss): one warm-up forward+backward, then the median of --reps for
 of --reps forward+backward passes, with torch.set_num_threads(--threads). The torch reference
 only runs at N = 10k (it takes seconds per render); other torch cells are marked skipped.
 Writes benchmarks/results/raster.json and prints a table.
+
+``--device cuda`` renders CUDA tensors and times the ``cuda`` (Triton) backend beside the torch
+one on the same GPU (default --backends cuda,torch; writes results/raster_cuda.json): times
+wait for the GPU (torch.cuda.synchronize) and the memory column is the peak CUDA memory the
+render allocated (torch.cuda.max_memory_allocated), not the process RSS.
 
 Wall times need an otherwise idle machine: when other processes keep the cores busy, each
 OpenMP barrier can wait a whole scheduler slice for a descheduled thread, and spinning threads
@@ -40,6 +45,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results" / "raster.json"
+RESULTS_CUDA = Path(__file__).resolve().parent / "results" / "raster_cuda.json"
 
 SIZES = [(512, 512), (1024, 768)]
 COUNTS = [10_000, 50_000, 200_000]
@@ -84,14 +90,23 @@ def run_one(cfg: dict) -> dict:
     from splatk.backends import Profile, rasterize, resolve_backend
 
     torch.set_num_threads(cfg["threads"])
+    device = torch.device(cfg.get("device", "cpu"))
+    on_gpu = device.type == "cuda"
     n, width, height = cfg["n"], cfg["width"], cfg["height"]
     means, conics, opac, colors, depths, mean_radius = make_scene(n, width, height)
+    depths = depths.to(device)
     prof = profile_for(cfg["kind"], cfg["k"], n)
-    leaves = [t.clone().requires_grad_(True) for t in (means, conics, opac, colors)]
-    params = None if prof.params is None else prof.params.clone().requires_grad_(True)
-    target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(1))
-    background = torch.zeros(3)
+    leaves = [t.to(device).requires_grad_(True) for t in (means, conics, opac, colors)]
+    params = None if prof.params is None else prof.params.to(device).requires_grad_(True)
+    target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(1)).to(device)
+    background = torch.zeros(3, device=device)
     backend = cfg["backend"]
+    assert resolve_backend(backend, device) == backend  # an unavailable backend is an error, not a fallback
+
+    def sync():
+        if on_gpu:
+            torch.cuda.synchronize(device)
+
     if backend == "cpu":
         assert resolve_backend("cpu") == "cpu"
         from splatk.backends import cpu_native
@@ -108,13 +123,17 @@ def run_one(cfg: dict) -> dict:
         out = forward()
         (out.colors - target).abs().mean().backward()
 
-    step()  # warm-up (also builds / loads the extension)
+    step()  # warm-up (also builds / loads the extension, compiles the kernels)
+    sync()
+    if on_gpu:
+        torch.cuda.reset_peak_memory_stats(device)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     load_before = os.getloadavg()[0]
     fwd, both, fwd_cpu, both_cpu, phases = [], [], [], [], []
     for _ in range(cfg["reps"]):
         c0, t0 = time.process_time(), time.perf_counter()
         out = forward()
+        sync()
         fwd.append(time.perf_counter() - t0)
         fwd_cpu.append(time.process_time() - c0)
         del out
@@ -123,6 +142,7 @@ def run_one(cfg: dict) -> dict:
             t.grad = None
         c0, t0 = time.process_time(), time.perf_counter()
         step()
+        sync()
         both.append(time.perf_counter() - t0)
         both_cpu.append(time.process_time() - c0)
         if ext is not None:
@@ -142,6 +162,9 @@ def run_one(cfg: dict) -> dict:
         "rss_growth_after_warmup_mb": (rss_peak - rss_before) / 1024,
         "mean_support_radius_px": mean_radius,
     }
+    if on_gpu:
+        res["gpu"] = torch.cuda.get_device_name(device)
+        res["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
     if phases:
         names = ["bbox", "sort", "bin", "raster", "bwd_raster", "bwd_reduce"]
         res["cpu_phases_ms"] = {
@@ -150,7 +173,7 @@ def run_one(cfg: dict) -> dict:
     return res
 
 
-def configs(quick: bool, threads: int, reps: int, backends: list[str]) -> list[dict]:
+def configs(quick: bool, threads: int, reps: int, backends: list[str], device: str = "cpu") -> list[dict]:
     sizes = SIZES[:1] if quick else SIZES
     counts = COUNTS[:2] if quick else COUNTS
     out = []
@@ -158,7 +181,7 @@ def configs(quick: bool, threads: int, reps: int, backends: list[str]) -> list[d
         for width, height in sizes:
             for n in counts:
                 for backend in backends:
-                    out.append(dict(kind=kind, k=k, n=n, width=width, height=height,
+                    out.append(dict(kind=kind, k=k, n=n, width=width, height=height, device=device,
                                     backend=backend, threads=threads, reps=reps,
                                     skip=backend == "torch" and n > TORCH_MAX_N))
     return out
@@ -188,8 +211,9 @@ def label(r: dict) -> str:
 
 
 def print_table(rows: list[dict]) -> None:
+    gpu = any("peak_cuda_mb" in r for r in rows)
     headers = ["profile", "N", "size", "backend", "fwd ms", "fwd+bwd ms", "(min)", "CPU ms",
-               "peak RSS MB"]
+               "peak CUDA MB" if gpu else "peak RSS MB"]
     lines = []
     for r in rows:
         size = f"{r['width']}x{r['height']}"
@@ -199,7 +223,7 @@ def print_table(rows: list[dict]) -> None:
             cells = ["error", "", "", "", ""]
         else:
             cells = [f"{r['fwd_ms']:.1f}", f"{r['fwd_bwd_ms']:.1f}", f"{r['fwd_bwd_ms_min']:.1f}",
-                     f"{r['fwd_bwd_cpu_ms']:.1f}", f"{r['peak_rss_mb']:.0f}"]
+                     f"{r['fwd_bwd_cpu_ms']:.1f}", f"{r.get('peak_cuda_mb', r['peak_rss_mb']):.0f}"]
         lines.append([label(r), f"{r['n'] // 1000}k", size, r["backend"], *cells])
     try:
         from rich.console import Console
@@ -224,12 +248,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="512x512 and N <= 50k only")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=7, help="timed repetitions (median), >= 5")
-    ap.add_argument("--backends", default="cpu,torch", help="comma-separated backends to time")
+    ap.add_argument("--backends", help="comma-separated backends to time (default: cpu,torch; "
+                                       "cuda,torch with --device cuda)")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                    help="where the tensors live (cuda: times the Triton backend beside torch)")
     ap.add_argument("--omp-wait-policy", choices=["passive", "active"],
                     help="OMP_WAIT_POLICY for the timed subprocesses (default: inherited)")
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--out", type=Path, help=f"default {RESULTS.relative_to(ROOT)} ({RESULTS_CUDA.name} with --device cuda)")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one JSON config
     args = ap.parse_args(argv)
+    if args.backends is None:
+        args.backends = "cuda,torch" if args.device == "cuda" else "cpu,torch"
+    if args.out is None:
+        args.out = RESULTS_CUDA if args.device == "cuda" else RESULTS
     if args.one:
         print(json.dumps(run_one(json.loads(args.one))))
         return 0
@@ -245,7 +276,13 @@ def main(argv: list[str] | None = None) -> int:
     info["OMP_WAIT_POLICY"] = env.get("OMP_WAIT_POLICY", "(libgomp default)")
     rows = []
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
-    for cfg in configs(args.quick, args.threads, max(args.reps, 5), backends):
+    if args.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            ap.error("--device cuda: this torch sees no CUDA device")
+        info["gpu"] = torch.cuda.get_device_name(0)
+    for cfg in configs(args.quick, args.threads, max(args.reps, 5), backends, args.device):
         if cfg["skip"]:
             rows.append(cfg)
             continue
@@ -260,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label(res):12s} {res['n']:>7d} {res['width']}x{res['height']} {res['backend']:5s}"
               f" fwd {res['fwd_ms']:8.1f} ms  fwd+bwd {res['fwd_bwd_ms']:8.1f} ms"
               f" (min {res['fwd_bwd_ms_min']:.1f}, CPU {res['fwd_bwd_cpu_ms']:.1f})"
-              f"  peak {res['peak_rss_mb']:6.0f} MB  load {res['loadavg_1min'][1]:.1f}",
+              f"  peak {res.get('peak_cuda_mb', res['peak_rss_mb']):6.0f} MB  load {res['loadavg_1min'][1]:.1f}",
               flush=True)
     info["loadavg_end"] = os.getloadavg()
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -61,7 +61,7 @@ def _register() -> None:
     import importlib
 
     for name in ("fit", "evaluate", "export", "compare", "pretrain", "image", "image_decode", "sfm", "bench", "demo",
-                 "render", "view"):
+                 "render", "view", "selftest"):
         try:
             mod = importlib.import_module(f"splatk_cli.{name}")
         except ModuleNotFoundError as e:

@@ -41,7 +41,7 @@ from .types import (ALPHA_MAX, ALPHA_MIN, GAUSSIAN_SUPPORT_SIGMAS, PLANAR_PROFIL
 
 def _load_all() -> None:
     # Importing registers; the native module compiles lazily on first use, not at import.
-    from . import cpu_backend, torch_backend  # noqa: F401
+    from . import cpu_backend, torch_backend, triton_backend  # noqa: F401
 
 
 def backend_names() -> list[str]:
