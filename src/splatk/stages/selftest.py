@@ -102,10 +102,8 @@ def render_planar(backend: Backend, x: dict, fixed: dict) -> tuple[torch.Tensor,
 
 
 def _splats_2d():
-    try:  # the image representation's package
-        from ..image.model import Splats2D
-    except ImportError:
-        from ..models.image2d import Splats2D
+    from ..image.model import Splats2D
+
     return Splats2D
 
 
