@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from splatk.stages.fit_config import parse_duration
+from splatk.bench.methods import protocol_departures
 from splatk.bench import (
     STABILITY_CONDITIONS,
     STABILITY_KERNELS,
@@ -97,9 +98,14 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
     bad = [m for m in metric_names if m not in ("psnr", "ssim", "lpips")]
     if bad:
         raise click.BadParameter(f"unknown metric(s): {', '.join(bad)}", param_hint="--metrics")
+    scale_schedules = not no_scale_schedules and data.get("scale_schedules", True)
+    departures = protocol_departures(data, defaults, scale_schedules)
+    if departures:  # a shortened protocol is a different experiment: say so before it runs
+        console.print(f"[yellow]not {data['protocol'].get('name', 'the protocol')}'s protocol: "
+                      f"{'; '.join(departures)}; compare these results with the paper's only as such")
     cfg = BenchConfig(methods=methods, defaults=defaults, metrics=metric_names,
                       lpips_net=lpips_net or data.get("lpips_net", "alex"),
-                      scale_schedules=not no_scale_schedules and data.get("scale_schedules", True))
+                      scale_schedules=scale_schedules)
 
     def on_event(kind, info):
         if quiet:

@@ -6,6 +6,10 @@ A method is a dict of fit settings (see :func:`fit_config_for`)::
     {kernel: learned, k: 4, weights: none, color: sh, budget: 30000 | auto,
      budget_bytes: 4MB, iters: 3000, time_budget: 600, name: my-id, ...FitConfig/TrainConfig fields}
 
+``pretrain: TARGET`` (cosine, gaussian, polynomial, linear; with ``pretrain_steps``) makes the
+bench pretrain the learned kernel's networks for the method's network shape (its
+``kernel_options``) once, under OUT/pretrain/, and fit with them (paper Tab. 3-5).
+
 ``primitive: planar`` fits 2D surfels (:class:`~splatk.models.planar.PlanarModel`) with the
 planar kernel of that name; ``k`` is volumetric-only and is ignored there.
 """
@@ -23,7 +27,9 @@ from ..errors import InputError
 from ..stages.fit_config import FitConfig, check_fit_config, fit_config_from_options, parse_bytes
 
 #: keys a method may have besides FitConfig / TrainConfig fields
-METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options")
+METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options", "pretrain", "pretrain_steps")
+#: the method keys :func:`pretraining` reads (the bench turns them into ``weights``)
+PRETRAIN_KEYS = ("pretrain", "pretrain_steps")
 
 
 def expand_grid(grid: dict) -> list[dict]:
@@ -62,6 +68,8 @@ def method_id(method: dict, defaults: dict | None = None) -> str:
     if kernel == "learned":
         if not planar:
             parts.append(f"k{m.pop('k', 2)}")
+        if "pretrain" in m:
+            parts.append(f"pre{m.pop('pretrain')}")
         w = m.pop("weights", None)
         if w is not None and str(w).lower() == "none":
             parts.append("nopre")
@@ -113,6 +121,10 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
     spec = {**(defaults or {}), **method}
     if "budget_bytes" in method:
         spec.pop("budget", None)  # the method's byte budget beats a default count
+    if pretraining(spec) is not None:
+        # checked as a method without pretrained networks; the runner fits with the pretrained file
+        spec = {k: v for k, v in spec.items() if k not in PRETRAIN_KEYS}
+        spec.setdefault("weights", "none")
     # the bench's switches, unless the method sets its own; the translator scales short runs
     # as it does for `splatk fit` (settings the method gives stay as given)
     options = {"scale_schedules": scale_schedules, "short_run_lrs": scale_lrs, **spec}
@@ -121,9 +133,31 @@ def fit_config_for(method: dict, defaults: dict | None = None, scale_schedules: 
     return cfg, notes
 
 
+def pretraining(method: dict) -> tuple[str, dict, int | None] | None:
+    """(target, network shape, steps) a method asks the bench to pretrain, or None."""
+    if "pretrain" not in method:
+        return None
+    from ..kernels.learned import ARCH_OPTIONS
+    from ..stages.pretrain import TARGETS
+
+    target = method["pretrain"]
+    if method.get("kernel") != "learned" or method.get("primitive", "volumetric") != "volumetric":
+        raise InputError(None, f"pretrain: {target!r} is for the volumetric learned kernel",
+                         "drop pretrain from the other methods")
+    if target not in TARGETS:
+        raise InputError(None, f"pretrain: {target!r} is not a target", f"use one of {', '.join(TARGETS)}")
+    shape = {k: v for k, v in (method.get("kernel_options") or {}).items() if k in ARCH_OPTIONS}
+    steps = method.get("pretrain_steps")
+    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
+        raise InputError(None, f"pretrain_steps: {steps!r} is not a positive whole number", "e.g. pretrain_steps: 2000")
+    return target, shape, steps
+
+
 def load_bench_file(path: str | Path) -> dict:
     """A bench YAML: ``defaults``, ``methods`` and/or ``grid``, optional ``scenes``,
-    ``metrics``, ``lpips_net``, ``scale_schedules`` and a ``stability`` section."""
+    ``metrics``, ``lpips_net``, ``scale_schedules``, a ``stability`` section and a ``protocol``
+    (a published protocol's name and the settings that make it that protocol, e.g.
+    ``{name: paper Tab. 2, iters: 30000}``: :func:`protocol_departures` names what a run changes)."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text()) or {}
@@ -131,7 +165,8 @@ def load_bench_file(path: str | Path) -> dict:
         raise InputError(path, f"invalid YAML ({e})") from e
     if not isinstance(data, dict):
         raise InputError(path, "a bench file is a mapping (defaults, methods, grid, scenes, stability)")
-    known = {"defaults", "methods", "grid", "scenes", "metrics", "lpips_net", "scale_schedules", "stability"}
+    known = {"defaults", "methods", "grid", "scenes", "metrics", "lpips_net", "scale_schedules", "stability",
+             "protocol"}
     unknown = set(data) - known
     if unknown:
         raise InputError(path, f"unknown keys {', '.join(sorted(unknown))}", f"use {', '.join(sorted(known))}")
@@ -142,3 +177,21 @@ def load_bench_file(path: str | Path) -> dict:
     if data.get("scenes"):
         data["scenes"] = [str((path.parent / s) if not Path(s).is_absolute() else s) for s in data["scenes"]]
     return data
+
+
+def protocol_departures(data: dict, defaults: dict, scale_schedules: bool) -> list[str]:
+    """The settings of a bench that depart from its file's ``protocol`` (empty: it runs the
+    protocol as published)."""
+    protocol = data.get("protocol") or {}
+    out = []
+    for key, value in protocol.items():
+        if key == "name":
+            continue
+        if key == "scale_schedules":
+            if bool(scale_schedules) != bool(value):
+                out.append(f"scale_schedules {scale_schedules} (protocol: {value})")
+        elif defaults.get(key, value) != value:
+            out.append(f"{key} {defaults.get(key)} (protocol: {value})")
+    if protocol and defaults.get("time_budget") is not None:
+        out.append(f"time_budget {defaults['time_budget']} (protocol: none)")
+    return out

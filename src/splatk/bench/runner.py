@@ -15,6 +15,7 @@ only evaluated. Charts and the table cover every result in OUT/results, so shell
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -31,7 +32,7 @@ from ..machine import machine_info
 from ..stages.evaluate import run_eval
 from ..stages.fit import run_fit
 from ..stages.fit_config import FitConfig
-from .methods import fit_config_for, method_id
+from .methods import PRETRAIN_KEYS, fit_config_for, method_id, pretraining
 
 RESULT_KEYS = ("psnr", "ssim", "lpips", "train_seconds", "render_ms", "footprint_mb", "num_primitives")
 
@@ -139,6 +140,7 @@ def run_one(
             if on_event:
                 on_event("reuse", info)
             return {**row, "reused": True}
+    method = with_pretrained_weights(method, cfg.defaults, root, on_event)
     fit_cfg, notes = fit_config_for(method, cfg.defaults, cfg.scale_schedules, cfg.scale_lrs)
     if "init" not in spec and not has_points(scene):
         fit_cfg.train.init = "random"  # e.g. NeRF-synthetic: nothing to start from but random points
@@ -203,6 +205,24 @@ def run_one(
     if on_event:
         on_event("done", {**info, "psnr": row["psnr"], "train_seconds": row["train_seconds"]})
     return row
+
+
+def with_pretrained_weights(method: dict, defaults: dict, root: Path, on_event=None) -> dict:
+    """``method`` with ``pretrain: TARGET`` replaced by the weights file it asks for, pretrained
+    once per (target, network shape, steps) under ROOT/pretrain/ (resumable like the runs)."""
+    from ..stages.pretrain import run_pretrain
+
+    request = pretraining({**defaults, **method})
+    if request is None:
+        return method
+    target, shape, steps = request
+    key = hashlib.sha1(json.dumps([target, shape, steps], sort_keys=True).encode()).hexdigest()[:8]
+    path = root / "pretrain" / f"{target}-{key}.pt"
+    if not path.is_file():
+        if on_event:
+            on_event("pretrain", {"scene": "-", "method": f"{target} {shape or 'default shape'}", "result": str(path)})
+        run_pretrain(target, path, steps=steps, kernel_options=shape, overwrite=True)
+    return {**{k: v for k, v in method.items() if k not in PRETRAIN_KEYS}, "weights": str(path.resolve())}
 
 
 def has_points(scene) -> bool:
