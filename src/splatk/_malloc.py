@@ -2,7 +2,7 @@
 
 Training allocates and frees the same multi-MB tensors every iteration; with glibc's default
 thresholds each of them is a fresh mmap whose pages fault in again, which cost the torch paths
-50-80% of their time on this project's reference machine (see benchmarks/README.md). Raising
+50-80% of their time on this project's 2-core reference machines. Raising
 the mmap and trim thresholds makes freed blocks reusable. Opt out with SPLATK_NO_MALLOPT=1.
 """
 from __future__ import annotations

@@ -50,7 +50,7 @@ class ImageFitConfig:
     latent_dim: int = LATENT_DIM
     #: learned kernel: size of the shape palette (0 = a latent per splat; K = K shared latents
     #: and a one-byte index per splat, k-means of the latents at ``shape_start`` of the run).
-    #: Six Kodak photos at 192x128, 2000 iterations (benchmarks/results/images_palette.json,
+    #: Six Kodak photos at 192x128, 2000 iterations (docs/decisions/0008-image-learned-kernel.md,
     #: before the turn): 64 shapes vs a latent per splat, mean PSNR 25.58 vs 25.44 dB at 8 KiB,
     #: 29.63 vs 29.34 at 24 KiB (Gaussian 25.75 / 29.64), and the best LPIPS of the three.
     shapes: int = 64

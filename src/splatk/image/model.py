@@ -24,11 +24,9 @@ Learned-kernel choices (the paper leaves them open for images):
 * A turn per splat: the learned shape is drawn at ``R(theta_i) (u, v)``, with ``theta_i`` stored
   in one byte (256 steps over 2 pi). The Cholesky frame ties the shape's axes to the image's x
   axis (``u = dx / l11``), so without a turn a shape that is not radially symmetric (an edge, a
-  lobe on one side) can point only where the palette happens to hold a copy of it. Measured
-  (kodim05 + kodim23, 192 x 128, 8 and 24 KiB, 2000 iterations at the learning rates of before
-  the turn, a latent per splat at the Gaussian's count): +0.89 dB over the Gaussian with the
-  turn, +0.60 without; turning the shape with the ellipse's own axes instead (a rotation-scale
-  covariance) gained next to nothing (+0.63).
+  lobe on one side) can point only where the palette happens to hold a copy of it. Turning the
+  shape with the ellipse's own axes instead (a rotation-scale covariance) gained next to nothing
+  (docs/decisions/0008-image-learned-kernel.md has the measurements).
   Training renders the rounded angle and passes the gradient straight through to the float, so
   the image trained is the image stored.
 * Signed output, no sigmoid: the image is a sum, not a composite, so a kernel may have negative
@@ -38,8 +36,8 @@ Learned-kernel choices (the paper leaves them open for images):
   makes the support as soft as the baseline's. The last layer starts at weight 0, bias 1, so
   at init the kernel *is* the Gaussian (what pretraining on Gaussian surfels aims at; paper
   Sec. 4.5) and the latents steer it away from there. A flatter envelope, ``(1 - r^2)^2``, or a
-  learned width of the Gaussian one did worse (palette and turn, kodim05 + kodim23: 0.45 and
-  0.18 dB below this envelope; the learned width stayed within 8% of the Gaussian's).
+  learned width of the Gaussian one did worse (decision 0008; the learned width stayed within 8%
+  of the Gaussian's).
 * Table mode (default): the decoder is sampled per primitive on a ``G x G`` grid of nodes over
   (u, v) in [-1, 1]^2 and pixels interpolate bilinearly (the 2D analogue of paper Eq. 8), so
   per-pixel cost is one Gaussian plus four gathers. ``exact`` mode calls the decoder per pixel

@@ -111,7 +111,7 @@ def scale_learned_options(options: dict, factor: float, keep, schedules: bool, l
     freeze (paper Sec. 4.5: 2000 of 30k iterations) shrinks in proportion, or a 2000-iteration
     run would leave them frozen throughout; the latents and networks get 30k / iters fewer
     steps, and their LRs decay over the shorter run, so their LRs rise by that factor, at most
-    x10 (cup / fox at 1/8, 2000 iterations, k=4: latent and network LR x10 gave +0.97 / +0.39 dB)."""
+    x10 (docs/decisions/0001-short-run-scaling.md)."""
     given = set(options) | set(keep)
     changes: dict = {}
     if schedules and "freeze_iters" not in given:

@@ -18,9 +18,9 @@ the model is compacted (``compact``, the default): the primitives are ranked by 
 weight summed over every train view, and only the most contributing ones are kept, as few as
 keep the train-view PSNR within ``compact_tolerance_db`` of the full model's (a bisection over
 kept fractions down to ``compact_min_keep``); the rest of the run fine-tunes what is left. The
-train views guard the cut because that is what a rule may look at; their drop was never
-smaller than the test-view drop by more than 0.012 dB in 40 measured cuts, so the guard errs
-on the safe side.
+train views guard the cut because that is what a rule may look at; in 40 measured cuts their
+drop was never noticeably smaller than the test views' (docs/decisions/0006-budget-auto-selection.md),
+so the guard errs on the safe side.
 
 At the end, primitives that contribute nothing are pruned: opacity below ``prune_opacity``,
 or a blending weight ``T * alpha`` summed over every pixel of every train view below

@@ -51,8 +51,7 @@ def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
     the SH degree twice, and leave a learned kernel's networks frozen for the whole run.
     MCMC's position noise grows by 30k / iters (at most x10): the means get that many fewer
     gradient steps, and the noise is what moves near-transparent primitives to where they are
-    needed (benchmarks/README.md, "MCMC noise in short runs": fox, random init, 2000 iterations,
-    +2.3 dB over two seeds). Settings named in ``keep`` (set explicitly by the user) and
+    needed (docs/decisions/0002-mcmc-noise-short-runs.md). Settings named in ``keep`` (set explicitly by the user) and
     explicit kernel options stay as given. Learning rates are left to :func:`boost_short_run_lrs`.
     """
     s = run_fraction(cfg)
@@ -85,10 +84,9 @@ def boost_short_run_lrs(cfg, keep: frozenset | set = frozenset()) -> dict:
     """Raise the learning rates tuned for 30k iterations on a shorter run; returns what changed.
 
     On for every short run unless told not to (``--no-short-run-lrs``, ``short_run_lrs: false``
-    as in the demo preset): 2000 iterations, 50k Gaussians, fox at 1/16: 23.79 dB without,
-    29.77 with; lego at 1/8: 31.60 without, 31.22 with. The trainer's collapse checks keep LR x10
-    on top of it above the initial PSNR in the stability matrix (docs/measurements.md,
-    "Stability"). Settings named in ``keep`` and explicit kernel options stay as given.
+    as in the demo preset; docs/decisions/0001-short-run-scaling.md has what it gains and costs).
+    The trainer's collapse checks keep LR x10 on top of it above the initial PSNR in the
+    stability matrix (docs/decisions/0005-collapse-rollback.md). Settings named in ``keep`` and explicit kernel options stay as given.
     """
     s = run_fraction(cfg)
     if s is None:

@@ -24,7 +24,7 @@ HEALTHY_LOSS_FACTOR = 1.25
 #: first LOSS_WINDOW steps) is rolled back as well: a run that collapses before it ever improved
 #: has its lowest mean near its start, where divergence_factor x lowest cannot see it (short-run
 #: LRs and LR x10, 1000 iterations: lego learned k=2 9.65 -> 24.46 dB, fox Gaussian 11.58 -> 16.81
-#: dB with this check; benchmarks/results/stability9)
+#: dB with this check; docs/decisions/0005-collapse-rollback.md)
 START_LOSS_FACTOR = 1.25
 #: a primitive whose largest scale is below this share of the scene's extent draws nothing a
 #: camera of the scene resolves (lego at 1/4 resolution: a pixel is ~3e-3 of the extent), and a

@@ -7,7 +7,7 @@ Relocation splits opacity, o' = 1 - (1 - o)^(1 / N) for a source copied N - 1 ti
 the scales (DBS, kernel-agnostic; ``split_scales: keep``, the default). ``split_scales: shrink``
 also shrinks the copies' scales by 3DGS-MCMC's Eq. 9 (:func:`split_scale_factor`, derived for
 Gaussians), so that the N stacked copies draw what the source drew instead of a fatter blob. Over
-two seeds per scene (benchmarks/README.md, "MCMC split scales") its effect on test PSNR was
+two seeds per scene (docs/decisions/0003-mcmc-split-scales-keep.md) its effect on test PSNR was
 within the seed-to-seed spread, so the default stays DBS's.
 """
 from __future__ import annotations
@@ -89,14 +89,11 @@ class MCMCStrategy(Strategy):
 
         With ``hold_growth``, a step that found at least as many dead primitives as it would add
         does not grow: the model is not using the capacity it has. Growing it anyway cascades when
-        the budget far exceeds what the views can constrain (bonsai at 1/16, 50 x 33 pixels,
-        400k cap, 2000 iterations: the dead share per step rose from 7% at 157k primitives to 95%
-        at 326k, as each step split live primitives into copies born near the dead threshold,
-        and train PSNR fell from 22 to 12 dB; held, the run ends at 232k primitives and 27.38 dB
-        test PSNR instead of 18.10). While a model grows normally far fewer die per step than
-        growth adds (fox 50k: 505 dead against 2,332 added at 47k primitives), but on the tiny
-        images of the auto-budget benchmark (seeds 0 and 1) it fired in 10 of 16 runs, and 3
-        ended below their budget (lego 200k at 139k on both seeds, fox 400k at 392k).
+        the budget far exceeds what the views can constrain: the dead share per step rises as each
+        step splits live primitives into copies born near the dead threshold, and the model
+        collapses (docs/decisions/0004-mcmc-hold-growth.md). While a model grows normally far
+        fewer die per step than growth adds, but on tiny images the rule can leave a model below
+        its budget.
         """
         if not self.is_refine_step(it, progress):
             return

@@ -68,7 +68,7 @@ class TrainConfig:
     #: multiplies every learning rate (primitives, colour, kernel networks); 1 = the defaults
     lr_scale: float = 1.0
     #: multiplies the log-scale learning rate alone. 0.005 is tuned for 30k iterations; short
-    #: runs starve it (benchmarks/README.md, "short runs"), so bench runs raise it
+    #: runs starve it (docs/decisions/0001-short-run-scaling.md), so short runs raise it
     scales_lr_mult: float = 1.0
     backend: str = "auto"
     device: str = "cpu"
