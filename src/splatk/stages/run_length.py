@@ -42,6 +42,17 @@ def _kernel_class(cfg):
     return KERNELS.get((cfg.primitive, cfg.kernel))
 
 
+def _scale_kernel_options(cfg, s: float, keep, schedules: bool) -> dict:
+    """The kernel's own scaling (:meth:`~splatk.kernels.base.Kernel.scale_to_run`) of its
+    schedules, or else of its learning rates, applied to ``cfg.kernel_options``."""
+    kernel = _kernel_class(cfg)
+    if kernel is None:
+        return {}
+    changes = kernel.scale_to_run(cfg.kernel_options, s, keep, schedules=schedules, lrs=not schedules)
+    cfg.kernel_options.update(changes)
+    return changes
+
+
 def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
     """Shrink the step-count schedules of a run shorter than 30k iterations in proportion
     (gsplat's ``steps_scaler`` idea); returns {setting: new value} (empty when nothing changed).
@@ -72,11 +83,7 @@ def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
     if "noise_lr" not in keep:
         # from the 30k default, not the current value, so scaling twice changes nothing
         t.mcmc.noise_lr = scaled["noise_lr"] = MCMCConfig.noise_lr * min(NOISE_LR_MULT_MAX, 1 / s)
-    kernel = _kernel_class(cfg)
-    if kernel is not None:
-        changes = kernel.scale_to_run(cfg.kernel_options, s, keep, schedules=True, lrs=False)
-        cfg.kernel_options.update(changes)
-        scaled.update(changes)
+    scaled.update(_scale_kernel_options(cfg, s, keep, schedules=True))
     return scaled
 
 
@@ -86,7 +93,8 @@ def boost_short_run_lrs(cfg, keep: frozenset | set = frozenset()) -> dict:
     On for every short run unless told not to (``--no-short-run-lrs``, ``short_run_lrs: false``
     as in the demo preset; docs/decisions/0001-short-run-scaling.md has what it gains and costs).
     The trainer's collapse checks keep LR x10 on top of it above the initial PSNR in the
-    stability matrix (docs/decisions/0005-collapse-rollback.md). Settings named in ``keep`` and explicit kernel options stay as given.
+    stability matrix (docs/decisions/0005-collapse-rollback.md). Settings named in ``keep`` and
+    explicit kernel options stay as given.
     """
     s = run_fraction(cfg)
     if s is None:
@@ -96,11 +104,7 @@ def boost_short_run_lrs(cfg, keep: frozenset | set = frozenset()) -> dict:
         # the log-scale LR is tuned for 30k iterations; short runs starve it (fox, random
         # init, 2000 iterations: learned k=4 13.9 -> 21.7 dB at x3, gaussian 20.9 -> 21.6)
         cfg.train.scales_lr_mult = boosted["scales_lr_mult"] = round(min(SCALES_LR_MULT_MAX, math.sqrt(1 / s)), 3)
-    kernel = _kernel_class(cfg)
-    if kernel is not None:
-        changes = kernel.scale_to_run(cfg.kernel_options, s, keep, schedules=False, lrs=True)
-        cfg.kernel_options.update(changes)
-        boosted.update(changes)
+    boosted.update(_scale_kernel_options(cfg, s, keep, schedules=False))
     return boosted
 
 
