@@ -25,7 +25,7 @@ def run(tmp_path_factory):
     scene = make_demo_scene(tmp / "scene", num_views=16, size=32)
     cfg = FitConfig(sh_degree=1, backend="torch", threads=1,
                     train=TrainConfig(iters=60, budget=300, init="random", backend="torch"))
-    return run_fit(scene, tmp / "run", cfg)
+    return run_fit(scene, tmp / "run", cfg).path
 
 
 def render(*args):
