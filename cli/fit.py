@@ -28,6 +28,9 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--primitive", type=click.Choice(PRIMITIVES), help="Primitive type. [default: volumetric]")
 @click.option("--backend", type=click.Choice(["auto", *backend_names()]), help="Rasteriser backend. [default: auto]")
 @click.option("--device", help="Torch device, e.g. cpu or cuda. [default: cpu]")
+@click.option("--batch-views", type=int,
+              help="Train views per step, their losses averaged; the learning rates rise by sqrt(B) "
+                   "(Grendel-GS's rule). [default: 1]")
 @click.option("--strategy", type=click.Choice(["mcmc", "adc"]),
               help="Density control: mcmc (DBS / 3DGS-MCMC: relocate, grow to --budget) or adc (3DGS: clone, "
                    "split, prune, opacity reset until 15k of 30k iterations; no budget). [default: mcmc]")

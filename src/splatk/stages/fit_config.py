@@ -349,6 +349,7 @@ RULES = [
     ("train.snapshot_every", "snapshot_every", int_range(1)),
     ("train.divergence_factor", "divergence_factor", float_range(0.0)),
     ("train.strategy", "strategy", choice("mcmc", "adc")),
+    ("train.batch_views", "batch_views", int_range(1, 256)),
     ("train.adc.densify_from", "densify_from", int_range(0)),
     ("train.adc.densify_until", "densify_until", int_range(0)),
     ("train.adc.densify_every", "densify_every", int_range(1)),

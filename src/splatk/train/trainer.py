@@ -72,6 +72,9 @@ class TrainConfig:
     scales_lr_mult: float = 1.0
     backend: str = "auto"
     device: str = "cpu"
+    #: train views rendered per step; their losses are averaged. The learning rates rise by
+    #: sqrt(batch_views) (Grendel-GS's rule for batched 3DGS training); 1 is the paper's setting
+    batch_views: int = 1
     #: keep an in-memory snapshot this often for rollback (NaN or collapse)
     snapshot_every: int = 200
     #: roll back (as for a NaN) when the loss's running mean rises above this many times its
@@ -162,7 +165,8 @@ class Trainer:
 
     def _set_learning_rates(self, p: float) -> tuple[float, float]:
         """Every step size for progress ``p``; returns (means LR, the multiplier on all)."""
-        lr_scale = self.lr_scale * self.cfg.lr_scale  # rollback halving x the configured multiplier
+        # rollback halving x the configured multiplier x the batch's square-root rule
+        lr_scale = self.lr_scale * self.cfg.lr_scale * math.sqrt(self.cfg.batch_views)
         means_lr = self.means_lr(p) * lr_scale
         self.opt.set_lr("means", means_lr)
         if lr_scale != 1.0:
@@ -180,12 +184,16 @@ class Trainer:
         self.it += 1
         p = self.progress()
         means_lr, _ = self._set_learning_rates(p)
-        vi = self._next_view()
-        cam = self.scene.train[vi]
-        target = self.targets[vi]
-        out = self.model.render(cam, self.background, sh_degree=self.sh_degree(), backend=self.backend)
-        loss = photometric_loss(out.image, target, self.backend, self.cfg.lambda_dssim)
-        loss = loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
+        views = [self._next_view() for _ in range(self.cfg.batch_views)]
+        renders, photo_loss = [], 0.0
+        for vi in views:
+            out = self.model.render(self.scene.train[vi], self.background, sh_degree=self.sh_degree(),
+                                    backend=self.backend)
+            photo_loss = photo_loss + photometric_loss(out.image, self.targets[vi], self.backend, self.cfg.lambda_dssim)
+            renders.append(out)
+        if len(views) > 1:
+            photo_loss = photo_loss / len(views)
+        loss = photo_loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
         if not torch.isfinite(loss):
             event = self.guard.after_nan_loss()
         else:
@@ -193,7 +201,8 @@ class Trainer:
             if self.net_opt is not None:
                 self.net_opt.zero_grad(set_to_none=True)
             loss.backward()
-            self.strategy.observe(self.it, self.model, out, cam)
+            for vi, out in zip(views, renders):
+                self.strategy.observe(self.it, self.model, out, self.scene.train[vi])
             self.opt.step()
             if self.net_opt is not None and any(g["lr"] > 0 for g in self.net_opt.param_groups):
                 self.net_opt.step()
@@ -205,7 +214,8 @@ class Trainer:
                 event = self._note_growth_held()
                 self.guard.note_step()
         with torch.no_grad():
-            mse = ((out.image.detach().clamp(0, 1) - target) ** 2).mean().item()
+            mse = sum(float(((out.image.detach().clamp(0, 1) - self.targets[vi]) ** 2).mean())
+                      for vi, out in zip(views, renders)) / len(views)
         self.elapsed += time.perf_counter() - t0
         return StepInfo(
             self.it, self.cfg.iters, float(loss.detach()), -10 * math.log10(max(mse, 1e-10)),
