@@ -9,7 +9,10 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from splatk.stages.fit_config import parse_duration
+from splatk.backends import backend_names
+from splatk.colors import COLOR_MODELS
+from splatk.kernels import kernel_names
+from splatk.stages.fit_config import PRIMITIVES, parse_duration
 from splatk.bench.methods import protocol_departures
 from splatk.bench import (
     STABILITY_CONDITIONS,
@@ -35,11 +38,11 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
               help="Bench folder: runs/, results/ (one JSON per run), charts/.")
 @click.option("--preset", "--methods", "preset",
               help="Bench YAML (presets/bench_*.yaml name or a file): defaults, methods/grid, scenes, stability.")
-@click.option("--kernel", multiple=True, type=click.Choice(["gaussian", "beta", "student_t", "learned"]),
+@click.option("--kernel", multiple=True, type=click.Choice(kernel_names("volumetric")),
               help="Kernel(s) of the grid (repeat). Replaces the YAML's methods.")
 @click.option("--k", "ks", multiple=True, type=int, help="Learned kernel: k value(s) (repeat). [default: 2]")
 @click.option("--weights", help="Learned kernel weights for flag-built methods: default, a file, or none.")
-@click.option("--color", multiple=True, type=click.Choice(["sh", "sb"]), help="Colour model(s) (repeat).")
+@click.option("--color", multiple=True, type=click.Choice(sorted(COLOR_MODELS)), help="Colour model(s) (repeat).")
 @click.option("--budget", multiple=True, help="Primitive budget(s) (repeat), or auto.")
 @click.option("--budget-bytes", multiple=True,
               help="Memory budget(s), e.g. 4MB (repeat): budget = (bytes - network bytes) // bytes per primitive.")
@@ -48,10 +51,10 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 @click.option("--downscale", type=float, help="Image downscale factor.")
 @click.option("--threads", type=int, help="CPU threads per run (0: all). Recorded in every result.")
 @click.option("--init", type=click.Choice(["auto", "sfm", "random"]), help="Initial primitives.")
-@click.option("--backend", type=click.Choice(["auto", "torch", "cpu"]), help="Rasteriser backend.")
+@click.option("--backend", type=click.Choice(["auto", *backend_names()]), help="Rasteriser backend.")
 @click.option("--seed", type=int, help="Random seed.")
 @click.option("--sh-degree", type=int, help="Maximum SH degree.")
-@click.option("--primitive", type=click.Choice(["volumetric", "planar"]),
+@click.option("--primitive", type=click.Choice(PRIMITIVES),
               help="Primitive type of every method (planar: gaussian and learned kernels only). [default: volumetric]")
 @click.option("--metrics", help="Comma-separated: psnr,ssim,lpips. [default: psnr,ssim,lpips]")
 @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), help="LPIPS network. [default: alex]")

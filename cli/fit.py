@@ -9,6 +9,7 @@ import click
 from splatk.backends import backend_names
 from splatk.kernels import kernel_names
 from splatk.colors import COLOR_MODELS
+from splatk.train.strategies import STRATEGIES
 from splatk.stages.fit import run_fit
 from splatk.stages.fit_config import PRIMITIVES, fit_config_from_options
 
@@ -31,7 +32,7 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--batch-views", type=int,
               help="Train views per step, their losses averaged; the learning rates rise by sqrt(B) "
                    "(Grendel-GS's rule). [default: 1]")
-@click.option("--strategy", type=click.Choice(["mcmc", "adc"]),
+@click.option("--strategy", type=click.Choice(sorted(STRATEGIES)),
               help="Density control: mcmc (DBS / 3DGS-MCMC: relocate, grow to --budget) or adc (3DGS: clone, "
                    "split, prune, opacity reset until 15k of 30k iterations; no budget). [default: mcmc]")
 @click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: try N/2 (N: 100000) and double "

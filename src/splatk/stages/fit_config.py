@@ -19,6 +19,7 @@ from ..errors import InputError
 from ..machine import memory_bytes
 from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
 from ..train.adc import ADCConfig
+from ..train.strategies import STRATEGIES
 from ..train.trainer import MCMC_FIELDS, TrainConfig
 from .autobudget import AutoBudgetConfig
 from .run_length import run_fraction, scale_to_run_length
@@ -348,7 +349,7 @@ RULES = [
     ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, None, lo_open=True)),
     ("train.snapshot_every", "snapshot_every", int_range(1)),
     ("train.divergence_factor", "divergence_factor", float_range(0.0)),
-    ("train.strategy", "strategy", choice("mcmc", "adc")),
+    ("train.strategy", "strategy", choice(*sorted(STRATEGIES))),
     ("train.batch_views", "batch_views", int_range(1, 256)),
     ("train.adc.densify_from", "densify_from", int_range(0)),
     ("train.adc.densify_until", "densify_until", int_range(0)),
