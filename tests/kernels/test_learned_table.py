@@ -52,7 +52,7 @@ def test_rendered_alpha_is_interpolated_phi_dec(k):
         r2, proj = pixel_r(model, cam)
         view = ViewContext(proj.means_cam, model.scales, proj.rotmats_cam)
         z2d = model.kernel.project(model.prims["z3d"], view)
-        table = model.kernel.decode(z2d, model.kernel.radii2)[0]  # [k], paper Eq. 7
+        table = model.kernel.samples(z2d)[0]  # [k], paper Eq. 7, the edge sample bounded
         profile = model.kernel.profile(dict(model.prims), view)
         assert torch.equal(profile.params[0], table)
         r = r2.clamp_min(0).sqrt()

@@ -14,7 +14,8 @@ radius (paper Eq. 6)::
 The rasteriser never calls Phi_dec per pixel: :meth:`LearnedKernel.profile` samples it at
 ``k`` radii ``r_i = i / (k - 1)`` (paper Eq. 7) for all visible primitives in one batched call,
 and the backends interpolate linearly in ``r`` (``Profile("table", d[M, k])``, paper Eq. 8).
-The support is the 1-sigma bounding ellipse (DBS convention), so ``r = 1`` is its edge.
+The support is the 1-sigma bounding ellipse (DBS convention), so ``r = 1`` is its edge; the
+sample there is bounded by ``edge_max`` (see the class docstring) so the kernel falls to its edge.
 
 Input encoding of Phi_proj (the paper leaves it open). Scene units are arbitrary (COLMAP
 scenes span 1 to 1000 units), so raw ``mu_cam`` and ``s`` would put the network off the
@@ -59,6 +60,8 @@ LEAKY_SLOPE = 0.01
 LOG_DIST_SCALE = 2.5
 LOG_ANGLE_SHIFT = 5.0
 LOG_ANGLE_SCALE = 2.5
+#: the decoded profile's value at the support edge (r = 1) is at most this (see ``edge_max``)
+EDGE_MAX = 0.25
 #: options that fix the networks' shapes; a weights file must match them
 ARCH_OPTIONS = ("latent_dim", "latent2d_dim", "proj_width", "dec_width", "proj_inputs")
 
@@ -165,6 +168,15 @@ class LearnedKernel(Kernel):
             1e-3: 27.98 / 28.63, 3e-3: 27.24 / 28.05; larger rates cost PSNR on both splits.
         weights: pretrained networks from `splatk pretrain`: "default" (the shipped cosine
             file), a path, or "none" (He init, for the no-pretraining ablation).
+        edge_max: the profile sample at the support edge (r = 1) is Phi_dec's value there times
+            this, so the kernel falls to at most ``edge_max`` where the rasteriser cuts it off.
+            The rasteriser's gradients with respect to a primitive's geometry (means, scales,
+            rotation) come from the profile's slope inside the support; the cut-off edge itself
+            is not differentiated. Unbounded, the networks raise d(1) towards d(0) after the
+            freeze (more coverage per primitive), which flattens the profile into a box whose
+            geometry gets no gradient but the scale regulariser's: the scales shrink, the
+            networks widen the profile further, and the loss climbs
+            (docs/decisions/0101-learned-kernel-unfreeze.md). 1 leaves Phi_dec's value as is.
         proj_precision: arithmetic of Phi_proj's matrix products: "fp32", "bf16" (CPU autocast;
             weights, inputs and z2d stay float32, Phi_dec stays float32), or "auto": bf16 for
             renders without gradients (eval, export) on a CPU with native bf16 units, fp32
@@ -199,6 +211,7 @@ class LearnedKernel(Kernel):
         z3d_lr: float = 1e-4,
         weights: str | None = "default",
         proj_precision: str = "auto",
+        edge_max: float = EDGE_MAX,
     ):
         super().__init__()
         k = int(k)
@@ -217,6 +230,9 @@ class LearnedKernel(Kernel):
         if proj_precision not in ("auto", "fp32", "bf16"):
             raise ValueError(f"learned kernel: proj_precision must be auto, fp32 or bf16, got {proj_precision!r}")
         self.proj_precision = proj_precision
+        self.edge_max = float(edge_max)
+        if not 0.0 < self.edge_max <= 1.0:
+            raise ValueError(f"learned kernel: edge_max must be in (0, 1], got {edge_max}")
         w = "none" if weights is None else str(weights)
         self.weights = w
         pretrained = w.lower() != "none"
@@ -228,6 +244,9 @@ class LearnedKernel(Kernel):
         self.dec = _mlp([1 + self.latent2d_dim, self.dec_width, self.dec_width, 1])  # Phi_dec, Eq. 6
         radii = torch.linspace(0.0, 1.0, k)
         self.register_buffer("radii2", radii * radii, persistent=False)  # r_i^2, paper Eq. 7
+        edge = torch.ones(k)
+        edge[-1] = self.edge_max
+        self.register_buffer("sample_bound", edge, persistent=False)  # [k]: edge_max at r = 1
 
         # A missing weights file is reported at first use, not here: load_model() rebuilds the
         # kernel from its options and then loads the saved networks over it, which must work
@@ -259,6 +278,7 @@ class LearnedKernel(Kernel):
             "z3d_lr": self.z3d_lr,
             "weights": self.weights,
             "proj_precision": self.proj_precision,
+            "edge_max": self.edge_max,
         }
 
     def arch_options(self) -> dict:
@@ -386,14 +406,19 @@ class LearnedKernel(Kernel):
                 LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE,
                 self._proj_layers(), self.dec[0::2], self.radii2, LEAKY_SLOPE)
             if table is not None:
-                return Profile("table", table)
+                return Profile("table", table * self.sample_bound)
         z2d = self.project(prims.get("z3d"), view)
         if native is not None:  # one native pass where the backend has one (same values)
             first, _, mid, _, last = self.dec
             table = native.learned_decode(z2d, (first, mid, last), self.radii2, LEAKY_SLOPE)
             if table is not None:
-                return Profile("table", table)
-        return Profile("table", self.decode(z2d, self.radii2))
+                return Profile("table", table * self.sample_bound)
+        return Profile("table", self.samples(z2d))
+
+    def samples(self, z2d: torch.Tensor) -> torch.Tensor:
+        """The k profile samples the rasteriser interpolates (paper Eq. 7), the one at the
+        support edge bounded by ``edge_max``: [M, k]."""
+        return self.decode(z2d, self.radii2) * self.sample_bound
 
     # ---- export to plain Gaussians ----------------------------------------------------
     @torch.no_grad()
@@ -429,7 +454,7 @@ class LearnedKernel(Kernel):
             tables = 0.0
             for V in views:
                 view = ViewContext(mu, scales, V[None] @ R)
-                tables = tables + self.decode(self.project(z3d, view), self.radii2)
+                tables = tables + self.samples(self.project(z3d, view))
             tables = tables / len(views)  # [m, k]
             # the rendered profile: linear interpolation of the table in r
             t = grid * (self.k - 1)

@@ -1,0 +1,59 @@
+"""The learned kernel's profile falls towards its support edge, so the geometry keeps its gradients
+(docs/decisions/0101-learned-kernel-unfreeze.md)."""
+import pytest
+import torch
+
+from splatk.kernels.learned import EDGE_MAX, LearnedKernel
+from tests.kernels.test_learned_kernel import view_of
+from tests.scenes import orbit_cameras, random_model
+
+
+def box_model(edge_max: float, n: int = 40, seed: int = 6):
+    """A learned-kernel model whose Phi_dec outputs 1 at every radius (a flat box: what the
+    networks drift to when the edge is not bounded)."""
+    model = random_model(n, seed, kernel="learned")
+    model.kernel.edge_max = edge_max
+    model.kernel.sample_bound[-1] = edge_max
+    with torch.no_grad():
+        model.kernel.dec[-1].bias.fill_(30.0)  # sigmoid(30) = 1 in float32
+    return model
+
+
+def scale_grad(model) -> float:
+    cam = orbit_cameras(4)[1]
+    out = model.render(cam, torch.ones(3), sh_degree=1, backend="torch")
+    g = torch.Generator().manual_seed(0)
+    (out.image * torch.rand(out.image.shape, generator=g)).sum().backward()
+    return float(model.prims["log_scales"].grad.abs().sum())
+
+
+def test_the_edge_sample_is_bounded_on_every_path():
+    model = box_model(EDGE_MAX)
+    cam = orbit_cameras(3)[0]
+    view = view_of(model, cam)
+    table = model.kernel.profile(dict(model.prims), view).params  # torch path, with gradients
+    assert table[:, 0].min() > 0.99 and (table[:, -1] - EDGE_MAX).abs().max() < 1e-6
+    view.fused = True
+    with torch.no_grad():  # the native paths (eval, export) draw the same table
+        fused = model.kernel.profile(dict(model.prims), view).params
+    assert (fused[:, -1] <= EDGE_MAX + 1e-3).all() and (fused[:, 0] > 0.99).all()
+    assert model.kernel.gaussian_scale_factor(dict(model.prims)).max() < 0.6  # the bound is exported too
+
+
+def test_a_flat_profile_leaves_the_scales_without_gradient_and_the_bound_restores_it():
+    # The rasteriser does not differentiate the support's cut-off edge: a primitive's scales get
+    # their gradient from the profile's slope inside it, which a flat box does not have.
+    flat = scale_grad(box_model(1.0))
+    bounded = scale_grad(box_model(EDGE_MAX))
+    assert bounded > 1e-3
+    assert flat < 1e-4 * bounded, (flat, bounded)
+
+
+def test_edge_max_is_an_option_and_is_checked():
+    kern = LearnedKernel(k=4, edge_max=0.5)
+    assert kern.options["edge_max"] == 0.5
+    assert kern.sample_bound.tolist() == [1.0, 1.0, 1.0, 0.5]
+    assert LearnedKernel().options["edge_max"] == EDGE_MAX
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="edge_max"):
+            LearnedKernel(edge_max=bad)
