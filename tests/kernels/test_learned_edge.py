@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from splatk import backends
 from splatk.kernels.learned import EDGE_MAX, LearnedKernel
 from tests.kernels.test_learned_kernel import view_of
 from tests.scenes import orbit_cameras, random_model
@@ -21,7 +22,7 @@ def box_model(edge_max: float, n: int = 40, seed: int = 6):
 
 def scale_grad(model) -> float:
     cam = orbit_cameras(4)[1]
-    out = model.render(cam, torch.ones(3), sh_degree=1, backend="torch")
+    out = model.render(cam, torch.ones(3), sh_degree=1, backend=backends.get("torch", "cpu"))
     g = torch.Generator().manual_seed(0)
     (out.image * torch.rand(out.image.shape, generator=g)).sum().backward()
     return float(model.prims["log_scales"].grad.abs().sum())
@@ -33,7 +34,7 @@ def test_the_edge_sample_is_bounded_on_every_path():
     view = view_of(model, cam)
     table = model.kernel.profile(dict(model.prims), view).params  # torch path, with gradients
     assert table[:, 0].min() > 0.99 and (table[:, -1] - EDGE_MAX).abs().max() < 1e-6
-    view.fused = True
+    view.backend = backends.get("cpu", "cpu")  # the native ops
     with torch.no_grad():  # the native paths (eval, export) draw the same table
         fused = model.kernel.profile(dict(model.prims), view).params
     assert (fused[:, -1] <= EDGE_MAX + 1e-3).all() and (fused[:, 0] > 0.99).all()
@@ -57,3 +58,15 @@ def test_edge_max_is_an_option_and_is_checked():
     for bad in (0.0, -0.1, 1.5):
         with pytest.raises(ValueError, match="edge_max"):
             LearnedKernel(edge_max=bad)
+
+
+def test_models_saved_before_the_bound_render_as_they_were_made(tmp_path):
+    from splatk.models.io import build_model, model_spec
+
+    model = box_model(EDGE_MAX)
+    spec = model_spec(model, {}, {"sh_degree": 1})
+    assert spec["kernel_options"]["edge_max"] == EDGE_MAX  # recorded in every new file
+    prims = {k: v.detach() for k, v in model.prims.items()}
+    assert build_model(spec, prims, model.kernel.state_dict()).kernel.edge_max == EDGE_MAX
+    old = {**spec, "kernel_options": {}}  # a file written before edge_max existed
+    assert build_model(old, prims, model.kernel.state_dict()).kernel.edge_max == 1.0

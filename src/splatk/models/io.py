@@ -44,11 +44,20 @@ def atomic_torch_save(obj, path: str | Path) -> Path:
     return atomic_write(path, lambda f: torch.save(obj, f))
 
 
+#: kernel options whose default changed: (kernel name, option) -> the value files that do not
+#: record it were made with (the learned kernel's profile was unbounded at its support edge)
+OPTIONS_BEFORE_RECORDED = {("learned", "edge_max"): 1.0}
+
+
 def model_spec(model: SplatModel | PlanarModel, kernel_options: dict, color_options: dict) -> dict:
+    options = dict(kernel_options)
+    for (kernel, name), _ in OPTIONS_BEFORE_RECORDED.items():  # recorded, so a later default cannot change it
+        if model.kernel.name == kernel and hasattr(model.kernel, name):
+            options.setdefault(name, getattr(model.kernel, name))
     return {
         "primitive": getattr(model, "primitive", "volumetric"),
         "kernel": model.kernel.name,
-        "kernel_options": dict(kernel_options),
+        "kernel_options": options,
         "color": model.color.name,
         "color_options": dict(color_options),
     }
@@ -76,7 +85,11 @@ def build_model(spec: dict, prims: dict, kernel_state: dict | None = None) -> Sp
             options["weights"] = "none"
         model = PlanarModel(make_kernel(spec["kernel"], "planar", **options), color, prims)
     elif primitive == "volumetric":
-        model = SplatModel(make_kernel(spec["kernel"], **spec.get("kernel_options", {})), color, prims)
+        options = dict(spec.get("kernel_options", {}))
+        for (kernel, name), before in OPTIONS_BEFORE_RECORDED.items():
+            if spec["kernel"] == kernel:
+                options.setdefault(name, before)  # a file from before the option: as it was made
+        model = SplatModel(make_kernel(spec["kernel"], **options), color, prims)
     else:
         raise ValueError(f"unknown primitive type {primitive!r} in model spec")
     kernel = model.kernel
