@@ -62,7 +62,7 @@ def memory_cap(monkeypatch):
         resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def demo_base(tmp_path_factory) -> Path:
     """A 5-view, 16-pixel NeRF-synthetic scene (4 train + 1 test); copied, never modified."""
     from splatk.data.synthetic import make_demo_scene
@@ -97,11 +97,11 @@ def _tiny_colmap(root: Path, text: bool) -> Path:
     return root
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def colmap_text_base(tmp_path_factory) -> Path:
     return _tiny_colmap(tmp_path_factory.mktemp("fuzz_colmap_txt"), text=True)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def colmap_bin_base(tmp_path_factory) -> Path:
     return _tiny_colmap(tmp_path_factory.mktemp("fuzz_colmap_bin"), text=False)
