@@ -45,6 +45,11 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
 @click.option("--downscale", type=float, help="Image downscale factor. [default: 1]")
+@click.option("--test-every", type=int, help="Every N-th image (name order) is a test view when the dataset names "
+              "no test list. [default: 8]")
+@click.option("--background", type=click.Choice(["white", "black"]),
+              help="Colour RGBA images are composited on and renders use. [default: white for transforms.json "
+                   "scenes, black for COLMAP]")
 @click.option("--init", "init", type=click.Choice(["auto", "sfm", "random"]),
               help="Initial primitives: SfM points, random, or auto (SfM points when the scene has them). [default: auto]")
 @click.option("--seed", type=int, help="Random seed. [default: 0]")

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 from click.testing import CliRunner
 
@@ -213,3 +214,14 @@ def test_resume_refuses_another_or_a_changed_scene(scene, old_run, tmp_path):
         one_error_line(run("fit", "--resume", "--out", old_run, "--iters", "30", "-q"), "the scene changed")
     finally:
         img.write_bytes(original)
+
+
+def test_test_split_and_background_from_the_command_line(scene, tmp_path):
+    out = tmp_path / "r"
+    res = run("fit", scene, "--out", out, *TINY, "--test-every", "3", "--background", "black")
+    assert res.exit_code == 0, res.output
+    settings = yaml.safe_load((out / "config.yaml").read_text())["settings"]
+    assert settings["test_every"] == 3 and settings["background"] == [0.0, 0.0, 0.0]
+    meta = torch.load(out / "model.pt", weights_only=True)["meta"]
+    assert meta["background"] == [0.0, 0.0, 0.0] and meta["test_every"] == 3
+    one_error_line(run("fit", scene, "--out", tmp_path / "bad", *TINY, "--test-every", "0"), "--test-every")

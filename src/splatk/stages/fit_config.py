@@ -200,6 +200,12 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
                                "e.g. adc: {grad_threshold: 0.0002}", sources.get("adc"))
         for key, value in nested.items():
             setattr(cfg.train.adc, key, value)
+    if isinstance(opts.get("background"), str):  # the command line's names for the two usual ones
+        named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
+        if opts["background"] not in named:
+            raise option_error("background", opts["background"], "is not white, black or three numbers",
+                               "e.g. --background white, or background: [0.5, 0.5, 0.5]", sources.get("background"))
+        opts["background"] = named[opts["background"]]
     for key, value in opts.items():
         target = (cfg if key in _FIT_FIELDS else cfg.train.mcmc if key in MCMC_FIELDS
                   else cfg.train.adc if key in ADC_FLAT else cfg.train)
