@@ -17,6 +17,7 @@ import triton.language as tl
 from .planar_cpu import planar_bboxes
 from .planar_torch import planar_visible
 from .triton_binning import bin_boxes
+from .triton_raster import composite_backward_step
 from .types import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, PlanarProfile, RasterOutput
 
 KIND_CODES = {"gaussian_surfel": 0, "grid": 1}
@@ -164,22 +165,9 @@ def planar_bwd_kernel(
         u, v, bu, bv, c2, x, y, hu0, hu1, hu2, hv0, hv1, hv2 = _uv(g, px, py, M_ptr)
         inside = (u * u + v * v) <= 1.0
         k = _kernel_value(u, v, g, table_ptr, inside, KIND, G, HALF_S2)
-        opac = tl.load(opac_ptr + g)
-        raw = opac * k
-        alpha = tl.minimum(A_MAX, raw)
-        active = (local < n_contrib) & inside & (alpha >= A_MIN)
-        one_m = 1.0 - alpha
-        T = tl.where(active, T / one_m, T)
-        w = tl.where(active, alpha * T, 0.0)
-        col = tl.load(colors_ptr + g * C + ch, mask=ch_ok, other=0.0)
-        tl.atomic_add(g_colors_ptr + g * C + ch, tl.sum(w[:, None] * v_img, axis=0), mask=ch_ok)
-        v_a = tl.sum(v_img * (T[:, None] * col[None, :] - behind / one_m[:, None]), axis=1)
-        v_a += v_alpha * t_final / one_m
-        v_a = tl.where(active, v_a, 0.0)
-        behind += w[:, None] * col[None, :]
-        v_raw = tl.where(raw <= A_MAX, v_a, 0.0)
-        tl.atomic_add(g_opac_ptr + g, tl.sum(v_raw * k, axis=0))
-        v_k = v_raw * opac
+        T, behind, v_k, active = composite_backward_step(
+            k, (local < n_contrib) & inside, g, T, behind, t_final, v_img, v_alpha, colors_ptr, g_colors_ptr,
+            g_opac_ptr, opac_ptr, ch, ch_ok, C, A_MAX, A_MIN)
         if KIND == 0:
             v_r2 = v_k * (-HALF_S2) * k
             v_u = v_r2 * 2.0 * u

@@ -126,6 +126,32 @@ def rasterize_fwd_kernel(
 
 
 @triton.jit
+def composite_backward_step(value, live, g, T, behind, t_final, v_img, v_alpha, colors_ptr, g_colors_ptr,
+                             g_opac_ptr, opac_ptr, ch, ch_ok, C, A_MAX: tl.constexpr, A_MIN: tl.constexpr):
+    """One primitive ``g`` of the back-to-front walk (3DGS's backward), drawn with kernel value
+    ``value`` [P] where ``live``: adds its colour and opacity gradients and returns the
+    transmittance in front of it, the colour behind it, the gradient on ``value`` and where it
+    was blended. Shared by the splat and the planar rasteriser."""
+    opac = tl.load(opac_ptr + g)
+    raw = opac * value
+    alpha = tl.minimum(A_MAX, raw)
+    active = live & (alpha >= A_MIN)
+    one_m = 1.0 - alpha
+    T = tl.where(active, T / one_m, T)
+    w = tl.where(active, alpha * T, 0.0)
+    col = tl.load(colors_ptr + g * C + ch, mask=ch_ok, other=0.0)
+    tl.atomic_add(g_colors_ptr + g * C + ch, tl.sum(w[:, None] * v_img, axis=0), mask=ch_ok)
+    v_a = tl.sum(v_img * (T[:, None] * col[None, :] - behind / one_m[:, None]), axis=1)
+    v_a += v_alpha * t_final / one_m
+    v_a = tl.where(active, v_a, 0.0)
+    behind += w[:, None] * col[None, :]
+    # the 0.999 clamp passes no gradient above it (torch.clamp's rule)
+    v_raw = tl.where(raw <= A_MAX, v_a, 0.0)
+    tl.atomic_add(g_opac_ptr + g, tl.sum(v_raw * value, axis=0))
+    return T, behind, v_raw * opac, active
+
+
+@triton.jit
 def rasterize_bwd_kernel(
     means_ptr, conics_ptr, opac_ptr, colors_ptr, params_ptr, bg_ptr,
     tile_offsets_ptr, flat_ids_ptr, tfinal_ptr, ncontrib_ptr, v_img_ptr, v_alpha_ptr,
@@ -157,23 +183,9 @@ def rasterize_bwd_kernel(
         dx, dy, ca, cb, cc, r2 = _r2(g, px, py, means_ptr, conics_ptr)
         inside = (r2 < 1.0) & (r2 >= 0.0)
         prof = _profile(r2, g, params_ptr, inside, KIND, K, GS2, TS2)
-        opac = tl.load(opac_ptr + g)
-        raw = opac * prof
-        alpha = tl.minimum(A_MAX, raw)
-        active = (local < n_contrib) & inside & (alpha >= A_MIN)
-        one_m = 1.0 - alpha
-        T = tl.where(active, T / one_m, T)
-        w = tl.where(active, alpha * T, 0.0)
-        col = tl.load(colors_ptr + g * C + ch, mask=ch_ok, other=0.0)
-        tl.atomic_add(g_colors_ptr + g * C + ch, tl.sum(w[:, None] * v_img, axis=0), mask=ch_ok)
-        v_a = tl.sum(v_img * (T[:, None] * col[None, :] - behind / one_m[:, None]), axis=1)
-        v_a += v_alpha * t_final / one_m
-        v_a = tl.where(active, v_a, 0.0)
-        behind += w[:, None] * col[None, :]
-        # the 0.999 clamp passes no gradient above it (torch.clamp's rule)
-        v_raw = tl.where(raw <= A_MAX, v_a, 0.0)
-        tl.atomic_add(g_opac_ptr + g, tl.sum(v_raw * prof, axis=0))
-        v_prof = v_raw * opac
+        T, behind, v_prof, active = composite_backward_step(
+            prof, (local < n_contrib) & inside, g, T, behind, t_final, v_img, v_alpha, colors_ptr, g_colors_ptr,
+            g_opac_ptr, opac_ptr, ch, ch_ok, C, A_MAX, A_MIN)
         # d profile / d r2 and the profile parameters' gradients
         if KIND == 0:
             v_r2 = v_prof * (-0.5 * GS2) * prof

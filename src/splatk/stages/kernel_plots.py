@@ -121,15 +121,8 @@ def export_kernel_plots(
         return _write_kernel_plots(run, out, backend, scene_path, num_views, num_primitives, render)
 
 
-def _write_kernel_plots(
-    run: str | Path,
-    out: str | Path,
-    backend: str = "auto",
-    scene_path: str | Path | None = None,
-    num_views: int = 6,
-    num_primitives: int = 4,
-    render: bool = True,
-) -> Path:
+def _write_kernel_plots(run: str | Path, out: str | Path, backend: str, scene_path: str | Path | None,
+                        num_views: int, num_primitives: int, render: bool) -> Path:
     """Write the kernel figures and ``kernels.json`` for RUN into folder ``out``; returns it.
 
     Args:
