@@ -16,6 +16,7 @@ import triton
 import triton.language as tl
 
 from .triton_binning import bin_boxes
+from .triton_raster import pixel_block
 from .types import TILE_SIZE
 
 KIND_CODES = {"gaussian": 0, "gabor": 1, "table": 2}
@@ -89,9 +90,7 @@ def image_fwd_kernel(means_ptr, chol_ptr, colors_ptr, extras_ptr, bbox_ptr, tile
                      out_ptr, width, height, tiles_x, E,
                      KIND: tl.constexpr, AUX: tl.constexpr, TILE: tl.constexpr):
     tile = tl.program_id(0)
-    lin = tl.arange(0, TILE * TILE)
-    px = (tile % tiles_x) * TILE + lin % TILE
-    py = (tile // tiles_x) * TILE + lin // TILE
+    px, py, _ = pixel_block(tile, tiles_x, width, height, TILE)
     ch = tl.arange(0, 4)
     acc = tl.zeros([TILE * TILE, 4], tl.float32)
     start = tl.load(tile_offsets_ptr + tile)
@@ -111,10 +110,7 @@ def image_bwd_kernel(means_ptr, chol_ptr, colors_ptr, extras_ptr, bbox_ptr, tile
                      v_out_ptr, g_means_ptr, g_chol_ptr, g_colors_ptr, g_extras_ptr, width, height, tiles_x, E,
                      KIND: tl.constexpr, AUX: tl.constexpr, TILE: tl.constexpr):
     tile = tl.program_id(0)
-    lin = tl.arange(0, TILE * TILE)
-    px = (tile % tiles_x) * TILE + lin % TILE
-    py = (tile // tiles_x) * TILE + lin // TILE
-    in_img = (px < width) & (py < height)
+    px, py, in_img = pixel_block(tile, tiles_x, width, height, TILE)
     ch = tl.arange(0, 4)
     v_out = tl.load(v_out_ptr + (py * width + px)[:, None] * 3 + ch[None, :],
                     mask=in_img[:, None] & (ch < 3)[None, :], other=0.0)

@@ -17,7 +17,7 @@ import triton.language as tl
 from .planar_cpu import planar_bboxes
 from .planar_torch import planar_visible
 from .triton_binning import bin_boxes
-from .triton_raster import composite_backward_step
+from .triton_raster import composite_backward_start, composite_backward_step, pixel_block
 from .types import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, PlanarProfile, RasterOutput
 
 KIND_CODES = {"gaussian_surfel": 0, "grid": 1}
@@ -90,10 +90,7 @@ def planar_fwd_kernel(
     A_MAX: tl.constexpr, A_MIN: tl.constexpr, T_STOP: tl.constexpr,
 ):
     tile = tl.program_id(0)
-    lin = tl.arange(0, TILE * TILE)
-    px = (tile % tiles_x) * TILE + lin % TILE
-    py = (tile // tiles_x) * TILE + lin // TILE
-    in_img = (px < width) & (py < height)
+    px, py, in_img = pixel_block(tile, tiles_x, width, height, TILE)
     ch = tl.arange(0, CP)
     ch_ok = ch < C
     start = tl.load(tile_offsets_ptr + tile)
@@ -141,23 +138,14 @@ def planar_bwd_kernel(
     A_MAX: tl.constexpr, A_MIN: tl.constexpr,
 ):
     tile = tl.program_id(0)
-    lin = tl.arange(0, TILE * TILE)
-    px = (tile % tiles_x) * TILE + lin % TILE
-    py = (tile // tiles_x) * TILE + lin // TILE
-    in_img = (px < width) & (py < height)
+    px, py, in_img = pixel_block(tile, tiles_x, width, height, TILE)
     pix = py * width + px
     ch = tl.arange(0, CP)
     ch_ok = ch < C
     start = tl.load(tile_offsets_ptr + tile)
 
-    T = tl.load(tfinal_ptr + pix, mask=in_img, other=1.0)
-    t_final = T
-    n_contrib = tl.load(ncontrib_ptr + pix, mask=in_img, other=0)
-    v_img = tl.load(v_img_ptr + pix[:, None] * C + ch[None, :], mask=in_img[:, None] & ch_ok[None, :],
-                    other=0.0)
-    v_alpha = tl.load(v_alpha_ptr + pix, mask=in_img, other=0.0)
-    bg = tl.load(bg_ptr + ch, mask=ch_ok, other=0.0)
-    behind = T[:, None] * bg[None, :]
+    T, t_final, n_contrib, v_img, v_alpha, behind = composite_backward_start(
+        pix, in_img, ch, ch_ok, C, tfinal_ptr, ncontrib_ptr, v_img_ptr, v_alpha_ptr, bg_ptr)
     last = tl.max(n_contrib, axis=0)
     for j in range(0, last):
         local = last - 1 - j

@@ -28,7 +28,7 @@ _TS2 = STUDENT_T_SUPPORT_SIGMAS**2
 
 
 @triton.jit
-def _pixel_block(tile, tiles_x, width, height, TILE: tl.constexpr):
+def pixel_block(tile, tiles_x, width, height, TILE: tl.constexpr):
     """Pixel coordinates of a tile's TILE*TILE pixels (row-major) and which lie in the image."""
     lin = tl.arange(0, TILE * TILE)
     px = (tile % tiles_x) * TILE + lin % TILE
@@ -85,7 +85,7 @@ def rasterize_fwd_kernel(
     T_STOP: tl.constexpr,
 ):
     tile = tl.program_id(0)
-    px, py, in_img = _pixel_block(tile, tiles_x, width, height, TILE)
+    px, py, in_img = pixel_block(tile, tiles_x, width, height, TILE)
     ch = tl.arange(0, CP)
     ch_ok = ch < C
     start = tl.load(tile_offsets_ptr + tile)
@@ -126,6 +126,20 @@ def rasterize_fwd_kernel(
 
 
 @triton.jit
+def composite_backward_start(pix, in_img, ch, ch_ok, C, tfinal_ptr, ncontrib_ptr, v_img_ptr, v_alpha_ptr, bg_ptr):
+    """What the back-to-front walk starts from at each pixel of a tile: the final transmittance
+    (twice: the running one and the final one), how many primitives it blended, the upstream
+    gradients of the image and the alpha, and the colour behind the last one (the background)."""
+    T = tl.load(tfinal_ptr + pix, mask=in_img, other=1.0)
+    n_contrib = tl.load(ncontrib_ptr + pix, mask=in_img, other=0)
+    v_img = tl.load(v_img_ptr + pix[:, None] * C + ch[None, :], mask=in_img[:, None] & ch_ok[None, :],
+                    other=0.0)
+    v_alpha = tl.load(v_alpha_ptr + pix, mask=in_img, other=0.0)
+    bg = tl.load(bg_ptr + ch, mask=ch_ok, other=0.0)
+    return T, T, n_contrib, v_img, v_alpha, T[:, None] * bg[None, :]
+
+
+@triton.jit
 def composite_backward_step(value, live, g, T, behind, t_final, v_img, v_alpha, colors_ptr, g_colors_ptr,
                              g_opac_ptr, opac_ptr, ch, ch_ok, C, A_MAX: tl.constexpr, A_MIN: tl.constexpr):
     """One primitive ``g`` of the back-to-front walk (3DGS's backward), drawn with kernel value
@@ -161,21 +175,15 @@ def rasterize_bwd_kernel(
     GS2: tl.constexpr, TS2: tl.constexpr, A_MAX: tl.constexpr, A_MIN: tl.constexpr,
 ):
     tile = tl.program_id(0)
-    px, py, in_img = _pixel_block(tile, tiles_x, width, height, TILE)
+    px, py, in_img = pixel_block(tile, tiles_x, width, height, TILE)
     pix = py * width + px
     ch = tl.arange(0, CP)
     ch_ok = ch < C
     start = tl.load(tile_offsets_ptr + tile)
 
-    T = tl.load(tfinal_ptr + pix, mask=in_img, other=1.0)
-    t_final = T
-    n_contrib = tl.load(ncontrib_ptr + pix, mask=in_img, other=0)
-    v_img = tl.load(v_img_ptr + pix[:, None] * C + ch[None, :], mask=in_img[:, None] & ch_ok[None, :],
-                    other=0.0)
-    v_alpha = tl.load(v_alpha_ptr + pix, mask=in_img, other=0.0)
-    bg = tl.load(bg_ptr + ch, mask=ch_ok, other=0.0)
-    # colour of everything behind the current primitive, background included
-    behind = T[:, None] * bg[None, :]
+    # behind: the colour of everything behind the current primitive, background included
+    T, t_final, n_contrib, v_img, v_alpha, behind = composite_backward_start(
+        pix, in_img, ch, ch_ok, C, tfinal_ptr, ncontrib_ptr, v_img_ptr, v_alpha_ptr, bg_ptr)
     last = tl.max(n_contrib, axis=0)
     for j in range(0, last):
         local = last - 1 - j
