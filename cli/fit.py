@@ -22,7 +22,8 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Run folder to write.")
 @click.option("--preset", help="YAML preset name (presets/) or file; command line beats preset.")
 @click.option("--kernel", type=click.Choice(kernel_names()), help="Splatting kernel. [default: gaussian]")
-@click.option("--k", "k", type=int, help="Learned kernel: profile samples per primitive (2, 4, 8). [default: 2]")
+@click.option("--k", "k", help="Learned kernel: profile samples per primitive (2, 4, 8), or `auto`: the k the "
+              "scene's pixels per primitive call for (decision 0102). [default: 2]")
 @click.option("--kernel-weights", type=click.Path(path_type=Path), help="Learned kernel: pretrained networks from `splatk pretrain`.")
 @click.option("--color", type=click.Choice(sorted(COLOR_MODELS)), help="Colour model: spherical harmonics or spherical Beta. [default: sh]")
 @click.option("--sh-degree", type=int, help="Maximum SH degree 0-3. [default: 3]")
@@ -106,7 +107,7 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
         console.print(
             f"[bold]splatk fit[/] {s.root}: {len(s.train)} train / {len(s.test)} test views "
             f"{s.train[0].width}x{s.train[0].height}, {info['model'].num_primitives:,} initial primitives, "
-            f"kernel {run_cfg.kernel}, backend {run_cfg.train.backend}"
+            f"kernel {run_cfg.kernel}{_k_text(run_cfg)}, backend {run_cfg.train.backend}"
         )
         task["time_budget"] = run_cfg.train.time_budget
         task["auto_budget"] = run_cfg.auto_budget is not None
@@ -172,3 +173,8 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
         name = "Ctrl-C" if stop["signal"] == signal.SIGINT else signal.Signals(stop["signal"]).name
         console.print(f"[yellow]stopped by {name}; checkpoint saved, continue with: splatk fit --resume --out {out}")
         raise SystemExit(128 + stop["signal"])
+
+
+def _k_text(cfg) -> str:
+    k = cfg.kernel_options.get("k")
+    return f" (k = {k})" if cfg.kernel == "learned" and k is not None else ""

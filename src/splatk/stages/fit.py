@@ -31,7 +31,7 @@ from ..models.volumetric import SplatModel
 from ..outputs import OutputDir, check_output_dir
 from ..train.trainer import StepInfo, Trainer
 from .autobudget import AutoBudget, render_psnr, split_holdout
-from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, color_options as _color_options,
+from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, resolve_auto_k, color_options as _color_options,
                          fit_config_from_options)
 from .run_folder import RunFolder, clean_resume_leftovers, record_resume_changes, write_config
 
@@ -235,6 +235,11 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
         if saved_print is not None and saved_print != fingerprint:
             raise InputError(scene_path, "the scene changed since the run started (its images, cameras or points "
                              "differ from the checkpoint's)", "restore the scene, or start a new run with another --out")
+    if not resume:
+        chosen = resolve_auto_k(cfg, sum(v.width * v.height for v in scene.train) / len(scene.train))
+        if chosen is not None:
+            config_sources = {**(config_sources or {}), "k": f"auto: {chosen['pixels_per_primitive']} train pixels "
+                              f"per primitive gives k = {chosen['k']} ({chosen['rule']})"}
     auto, holdout = None, []
     all_train = list(scene.train)  # the refit of --budget auto trains on every one, in this order
     if cfg.auto_budget is not None:

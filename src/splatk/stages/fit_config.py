@@ -169,9 +169,9 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
             setattr(cfg, key, opts.pop(key))
     planar = cfg.primitive == "planar"
     if "k" in opts:
-        k = opts.pop("k")
+        k = _read_k(opts.pop("k"), sources)
         if cfg.kernel == "learned" and not planar:  # the planar learned kernel has no k
-            kernel_options["k"] = k
+            kernel_options["k"] = k  # "auto" is resolved when the scene is loaded (resolve_auto_k)
     for key in ("weights", "kernel_weights"):
         if key in opts:
             w = opts.pop(key)
@@ -297,9 +297,42 @@ def bytes_per_primitive(cfg: FitConfig) -> tuple[int, int]:
     from ..models.volumetric import SplatModel
 
     model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
+    options = dict(cfg.kernel_options)
+    if options.get("k") == AUTO_K:
+        options["k"] = 2  # k does not change the bytes (the samples are decoded per view)
     model = model_class.from_points(torch.zeros(1, 3), torch.zeros(1, 3), kernel=cfg.kernel, color=cfg.color,
-                                    kernel_options=cfg.kernel_options, color_options=color_options(cfg))
+                                    kernel_options=options, color_options=color_options(cfg))
     return 4 * model.floats_per_primitive(), 4 * sum(p.numel() for p in model.kernel.parameters())
+
+
+#: the value of ``k`` that lets the scene choose (:func:`resolve_auto_k`)
+AUTO_K = "auto"
+
+
+def _read_k(value, sources: dict):
+    """``--k``: a whole number, or ``auto``."""
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text == AUTO_K:
+            return AUTO_K
+        if text.isdigit():
+            return int(text)
+        raise option_error("k", value, "is not a whole number or auto", "e.g. --k 2, --k 8 or --k auto",
+                           sources.get("k"))
+    return value
+
+
+def resolve_auto_k(cfg: FitConfig, pixels_per_view: float) -> dict | None:
+    """With ``k: auto``, set the learned kernel's k from the scene (:mod:`splatk.kernels.auto_k`)
+    and return how it was chosen; None when k was given."""
+    from ..kernels.auto_k import choose_k, rule_text
+
+    if cfg.kernel_options.get("k") != AUTO_K:
+        return None
+    k = choose_k(pixels_per_view, cfg.train.budget)
+    cfg.kernel_options["k"] = k
+    return {"k": k, "pixels_per_view": round(pixels_per_view), "budget": cfg.train.budget,
+            "pixels_per_primitive": round(pixels_per_view / cfg.train.budget, 3), "rule": rule_text()}
 
 
 def color_options(cfg: FitConfig) -> dict:
@@ -436,6 +469,8 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
     options = dict(cfg.kernel_options)
     if "weights" in options:
         options["weights"] = "none"  # the file is read (and checked) when the model is built
+    if options.get("k") == AUTO_K:
+        options["k"] = 2  # any k builds the same networks; the scene decides (resolve_auto_k)
     try:
         make_kernel(cfg.kernel, cfg.primitive, **options)
         make_color_model(cfg.color, **color_options(cfg))

@@ -1,0 +1,28 @@
+"""`--k auto`: how many profile samples a learned primitive gets, from the scene's pixels per
+primitive (decision 0102).
+
+k does not change a primitive's bytes (the samples are decoded per view from the latent, paper
+Sec. 4.3); it buys a more expressive profile with render time. The paper's Tab. 2 shows where
+that pays: with few primitives for the pixels to cover (large splats on screen) k = 8 and 4
+beat k = 2; with many (small splats, where a conical hat suffices) k = 2 is as good and faster.
+The rule therefore reads one number, the train image's pixels per primitive of the budget, and
+picks k from thresholds set on the paper's Tanks & Temples budgets and checked on the tuning
+scenes of decision 0100.
+"""
+from __future__ import annotations
+
+#: (least pixels per primitive, k), first match wins
+K_BY_PIXELS_PER_PRIMITIVE = ((1.2, 8), (0.6, 4), (0.0, 2))
+
+
+def choose_k(pixels_per_view: float, budget: int) -> int:
+    """The k for a model of ``budget`` primitives trained on views of ``pixels_per_view`` pixels."""
+    if budget < 1:
+        raise ValueError("budget must be at least 1 primitive")
+    density = pixels_per_view / budget
+    return next(k for least, k in K_BY_PIXELS_PER_PRIMITIVE if density >= least)
+
+
+def rule_text() -> str:
+    parts = [f"k = {k} from {least:g}" for least, k in K_BY_PIXELS_PER_PRIMITIVE]
+    return "train pixels per view / budget: " + ", ".join(parts) + " (decision 0102)"
