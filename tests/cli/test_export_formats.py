@@ -139,12 +139,12 @@ def sh_flip_signs(degree: int) -> np.ndarray:
     return np.sign(signs)
 
 
-def check_spz_against(data, g: Gaussians):
+def check_spz_against(data, g: Gaussians, fractional_bits: int = 12):
     """gsply's decoded SPZ (right-up-back) against the Gaussians written (right-down-front)."""
     means = data.means @ RUB_FROM_RDF
     idx = match_rows(np.concatenate([means, data.scales, data.sh0], 1),
                      np.concatenate([g.means, g.log_scales, g.sh0], 1))
-    assert np.abs(means - g.means[idx]).max() <= 0.5 / 4096 + 1e-6  # 12 fractional bits
+    assert np.abs(means - g.means[idx]).max() <= 0.5 / 2**fractional_bits + 1e-6
     np.testing.assert_allclose(data.scales, g.log_scales[idx], atol=1 / 32 + 1e-6)  # log scale, steps of 1/16
     alpha = 1 / (1 + np.exp(-data.opacities))
     assert np.abs(alpha - 1 / (1 + np.exp(-g.opacity_logits[idx]))).max() <= 0.5 / 255 + 1e-3
@@ -194,8 +194,15 @@ def test_spz_edge_cases_read_back_with_gsply(tmp_path):
     clipped = Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits,
                         np.clip(g.sh0, -127.5 / 255 / 0.15, 127.5 / 255 / 0.15), g.sh_rest)
     check_spz_against(data, clipped)
-    far = Gaussians(g.means + 3000, g.log_scales, g.quats, g.opacity_logits, g.sh0, g.sh_rest)
-    assert check_spz_range(g) is None and "24-bit" in check_spz_range(far)
+    # a coordinate past 2^11 (a far background Gaussian) costs fractional bits, not the Gaussian
+    far = Gaussians(g.means * 10, g.log_scales, g.quats, g.opacity_logits, g.sh0, g.sh_rest)
+    with open(out, "wb") as f:
+        write_spz(far, f)
+    assert spz_header(out)[4] == 9  # |x| < 15000 < 2^14: 23 - 14 fractional bits
+    check_spz_against(gsply_read_spz(out), Gaussians(far.means, g.log_scales, g.quats, g.opacity_logits,
+                                                    clipped.sh0, g.sh_rest), fractional_bits=9)
+    beyond = Gaussians(g.means * 10_000, g.log_scales, g.quats, g.opacity_logits, g.sh0, g.sh_rest)
+    assert check_spz_range(far) is None and "24-bit" in check_spz_range(beyond)
 
 
 def render_psnr(model, scene) -> float:

@@ -6,8 +6,10 @@ same inputs the payload is byte for byte the reference writer's.
 The whole file is one gzip stream of a 16-byte header and six arrays, attribute by attribute:
 
 * header ``<IIIBBBB``: magic ``NGSP`` (0x5053474E), version 3, N, SH degree, fractional bits
-  (12), flags (0: not antialiased), reserved.
-* positions: N x 3 signed 24-bit fixed-point values (``round(x * 2^12)``), little-endian.
+  F, flags (0: not antialiased), reserved.
+* positions: N x 3 signed 24-bit fixed-point values (``round(x * 2^F)``), little-endian. F is
+  12, as the reference writer sets it, unless a coordinate reaches 2^11 (a far background
+  Gaussian): then the largest F that holds every coordinate; readers take F from the header.
 * alphas: N bytes, ``255 sigmoid(opacity)``.
 * colours: N x 3 bytes, ``f_dc * 0.15 * 255 + 127.5``.
 * scales: N x 3 bytes, ``(log scale + 10) * 16``.
@@ -35,7 +37,10 @@ from .gaussians import Gaussians
 
 MAGIC = 0x5053474E  # "NGSP" little-endian
 VERSION = 3
+#: the reference writer's fractional bits of a position (1/4096 of a scene unit)
 FRACTIONAL_BITS = 12
+#: largest value of a signed 24-bit position
+MAX_FIXED = 2**23 - 1
 COLOR_SCALE = 0.15
 #: RDF -> RUB sign of x, y, z of a position or a quaternion's vector part
 FLIP_XYZ = np.array([1.0, -1.0, -1.0], np.float32)
@@ -43,8 +48,6 @@ FLIP_XYZ = np.array([1.0, -1.0, -1.0], np.float32)
 FLIP_SH = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], np.float32)
 #: SH quantisation bucket sizes: 5 bits for degree 1, 4 bits for degrees 2 and 3
 SH1_BUCKET, SH_REST_BUCKET = 1 << (8 - 5), 1 << (8 - 4)
-#: largest |position| a 24-bit fixed-point value with 12 fractional bits holds
-MAX_POSITION = (2**23 - 1) / 2**FRACTIONAL_BITS
 
 
 def _round(x: np.ndarray) -> np.ndarray:
@@ -56,9 +59,19 @@ def _to_uint8(x: np.ndarray) -> np.ndarray:
     return np.clip(_round(x), 0, 255).astype(np.uint8)
 
 
-def pack_positions(means: np.ndarray) -> np.ndarray:
-    """[N, 3] -> [N, 9] bytes of 24-bit fixed point (|x| must be <= :data:`MAX_POSITION`)."""
-    fixed = _round(means.astype(np.float64) * (1 << FRACTIONAL_BITS)).astype(np.int64)
+def fractional_bits(means: np.ndarray) -> int | None:
+    """Fractional bits of the positions: :data:`FRACTIONAL_BITS`, or fewer where a coordinate
+    needs more integer bits; None when one does not fit even with none."""
+    largest = float(np.abs(means.astype(np.float64)).max()) if len(means) else 0.0
+    for bits in range(FRACTIONAL_BITS, -1, -1):
+        if _round(np.float64(largest * 2**bits)) <= MAX_FIXED:
+            return bits
+    return None
+
+
+def pack_positions(means: np.ndarray, bits: int) -> np.ndarray:
+    """[N, 3] -> [N, 9] bytes of 24-bit fixed point with ``bits`` fractional bits."""
+    fixed = _round(means.astype(np.float64) * (1 << bits)).astype(np.int64)
     u = (fixed & 0xFFFFFF).astype(np.uint32)  # two's complement, 24 bits
     return np.stack([u & 0xFF, (u >> 8) & 0xFF, (u >> 16) & 0xFF], axis=-1).astype(np.uint8).reshape(len(means), 9)
 
@@ -96,16 +109,17 @@ def spz_bytes(gaussians: Gaussians) -> bytes:
     quats_xyzw = np.concatenate([g.quats[:, 1:] * FLIP_XYZ, g.quats[:, :1]], axis=1)
     sh_rest = g.sh_rest * FLIP_SH[:k, None]
     alphas = _to_uint8(255.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64))))
-    header = struct.pack("<IIIBBBB", MAGIC, VERSION, n, g.sh_degree, FRACTIONAL_BITS, 0, 0)
-    parts = [pack_positions(means), alphas, _to_uint8(g.sh0 * (COLOR_SCALE * 255) + 127.5),
+    bits = fractional_bits(means)
+    header = struct.pack("<IIIBBBB", MAGIC, VERSION, n, g.sh_degree, bits, 0, 0)
+    parts = [pack_positions(means, bits), alphas, _to_uint8(g.sh0 * (COLOR_SCALE * 255) + 127.5),
              _to_uint8((g.log_scales + 10.0) * 16.0), pack_quats_smallest_three(quats_xyzw), quantize_sh(sh_rest)]
     return header + b"".join(np.ascontiguousarray(p).tobytes() for p in parts)
 
 
 def check_spz_range(gaussians: Gaussians) -> str | None:
     """Why ``gaussians`` do not fit SPZ, or None."""
-    if len(gaussians) and np.abs(gaussians.means).max() > MAX_POSITION:
-        return f"positions beyond +-{MAX_POSITION:.0f} do not fit SPZ's 24-bit fixed point"
+    if fractional_bits(gaussians.means) is None:
+        return f"positions beyond +-{MAX_FIXED} do not fit SPZ's 24-bit fixed point"
     return None
 
 

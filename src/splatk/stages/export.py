@@ -51,8 +51,8 @@ class Approximation:
     """What a Gaussian file loses of a model, and what that costs on the scene's test views.
 
     ``psnr_model`` is the mean test PSNR of the model as splatk renders it, ``psnr_export`` that
-    of the file's Gaussians rendered the same way (both None, with ``not_measured`` saying why,
-    when the scene is not there).
+    of the Gaussians the file holds (before the format's quantisation) rendered the same way
+    (both None, with ``not_measured`` saying why, when the scene is not there).
     """
 
     changes: list[str]
