@@ -63,3 +63,19 @@ def test_a_new_kernel_is_one_class_and_its_registration(monkeypatch):
     assert kernel.profile({"means": torch.zeros(2, 3)}, None).table.shape == (2, 4, 4)
     with pytest.raises(ValueError, match="unknown kernel 'square'"):
         make_kernel("square")
+
+
+def test_beta_gaussian_bake_matches_the_profiles_second_moment():
+    """Export's Gaussian for a Beta splat has the profile's per-axis variance over the unit disk."""
+    import torch
+
+    from splatk.kernels import make_kernel
+
+    kernel = make_kernel("beta", "volumetric")
+    beta = torch.tensor([0.1, 1.0, 4.0, 20.0])
+    prims = {"beta_raw": torch.log(beta / 4.0)[:, None]}
+    s = kernel.gaussian_scale_factor(prims)
+    r = torch.linspace(0, 1, 200001, dtype=torch.float64)[:, None]
+    w = (1 - r ** 2).clamp_min(0) ** beta.double() * r  # radial weight on the disk
+    var_per_axis = 0.5 * torch.trapezoid(r ** 2 * w, r, dim=0) / torch.trapezoid(w, r, dim=0)
+    assert torch.allclose(s.double() ** 2, var_per_axis, rtol=1e-3), (s ** 2, var_per_axis)

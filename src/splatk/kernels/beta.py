@@ -22,6 +22,9 @@ class BetaKernel(Kernel):
         return Profile("beta", 4.0 * torch.exp(prims["beta_raw"]))
 
     def gaussian_scale_factor(self, prims):
-        # (1 - m^2)^beta ~ exp(-beta m^2) near the centre = exp(-m^2 / (2 s^2)), s = 1/sqrt(2 beta)
+        # the Gaussian with the profile's second moment: over the unit disk, (1 - m^2)^beta has
+        # E[m^2] = 1 / (beta + 2), so each axis has s^2 = 1 / (2 (beta + 2)). Matching the curvature at
+        # the centre instead (s^2 = 1 / (2 beta)) fits the core and misses the shoulders, which
+        # carry most of a low-beta splat's weight.
         beta = 4.0 * torch.exp(prims["beta_raw"][:, 0])
-        return torch.rsqrt(2.0 * beta)
+        return torch.rsqrt(2.0 * (beta + 2.0))
