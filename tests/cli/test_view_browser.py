@@ -1,6 +1,6 @@
 """`splatk view` in a real headless Chromium: the page opens, a frame arrives, and the picture on
 the page is `eval`'s render of the same camera; the panel shows the frame time and jumps to a
-picked camera. Needs the `playwright` package and the Debian `chromium` package (/usr/bin/chromium,
+picked camera; frames shrink while the camera moves. Needs the `playwright` package and the Debian `chromium` package (/usr/bin/chromium,
 or the browser that SPLATK_CHROMIUM names); `bash .ci/install_test_assets.sh` installs it when run
 as root."""
 from __future__ import annotations
@@ -61,11 +61,13 @@ def _free_port() -> int:
 
 
 @pytest.fixture
-def viewer(learned_run):
-    """`splatk view` serving the run at its test camera test/r_8.png; the server is always stopped."""
+def viewer(learned_run, request):
+    """`splatk view` serving the run at its test camera test/r_8.png (more options: the test's
+    indirect parameter); the server is always stopped."""
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "splatk_cli.main", "view", str(learned_run), "--port", str(port),
-                             "--host", "127.0.0.1", "--backend", "torch", "--camera", "test/r_8.png"],
+                             "--host", "127.0.0.1", "--backend", "torch", "--camera", "test/r_8.png",
+                             *getattr(request, "param", ())],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "OMP_NUM_THREADS": "1"})
     try:
@@ -167,3 +169,28 @@ def test_the_camera_list_jumps_to_the_picked_camera(learned_run, page):
     ref = _eval_render(learned_run, "test/r_0.png")
     psnr = _shows(page, ref, timeout=60)
     assert psnr > 25, f"after picking test/r_0.png the viewer does not show it (PSNR {psnr:.1f} dB)"
+
+
+def _frame_size(page) -> tuple[int, int]:
+    """The size of the last frame, as the panel reports it."""
+    text = page.get_by_text(re.compile(r"Frame: \d+ ms, \d+×\d+")).inner_text()
+    width, height = re.search(r"(\d+)×(\d+)", text).groups()
+    return int(width), int(height)
+
+
+# no frame is drawn in a millisecond, so every frame while the camera moves is smaller than the last
+@pytest.mark.parametrize("viewer", [("--fps", "1000")], indirect=True)
+def test_frames_shrink_while_the_camera_moves_and_sharpen_at_rest(page):
+    _wait_for_full_frame(page)
+    y = 0.8 * WINDOW  # below the panel
+    page.mouse.move(0.2 * WINDOW, y)
+    page.mouse.down()
+    sizes = set()
+    for i in range(40):  # an orbit drag of about two seconds
+        page.mouse.move(0.2 * WINDOW + 5 * i, y)
+        time.sleep(0.05)
+        sizes.add(_frame_size(page))
+    page.mouse.up()
+    assert any(width < WINDOW for width, _ in sizes), f"frames while moving: {sorted(sizes)}"
+    assert all(width / height == pytest.approx(1.0, abs=0.05) for width, height in sizes)  # the window's aspect
+    _wait_for_full_frame(page)  # once the camera rests
