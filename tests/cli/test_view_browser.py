@@ -1,8 +1,8 @@
 """`splatk view` in a real headless Chromium: the page opens, a frame arrives, and the picture on
 the page is `eval`'s render of the same camera; the panel shows the frame time and jumps to a
-picked camera; frames shrink while the camera moves. Needs the `playwright` package and the Debian `chromium` package (/usr/bin/chromium,
-or the browser that SPLATK_CHROMIUM names); `bash .ci/install_test_assets.sh` installs it when run
-as root."""
+picked camera; frames shrink while the camera moves. Needs the `playwright` package and Debian's
+`chromium` package (/usr/bin/chromium, or the browser that SPLATK_CHROMIUM names);
+`bash .ci/install_test_assets.sh` installs it when run as root."""
 from __future__ import annotations
 
 import io
