@@ -137,14 +137,15 @@ def _wait_for_full_frame(page):
     page.get_by_text(re.compile(rf"Frame: \d+ ms, {WINDOW}×{WINDOW}")).wait_for(state="visible")
 
 
-def _shows(page, ref: np.ndarray, timeout: float = 30.0) -> float:
-    """The PSNR of the page's picture against ``ref`` once it matches (above 25 dB), or the last one
-    seen after ``timeout`` seconds (the browser may paint the frame a moment after it arrives)."""
+def _shows(page, ref: np.ndarray, timeout: float = 30.0) -> tuple[float, np.ndarray]:
+    """The page's picture and its PSNR against ``ref`` once it matches (above 25 dB), or the last
+    ones seen after ``timeout`` seconds (the browser may paint the frame a moment after it arrives)."""
     deadline = time.time() + timeout
     while True:
-        psnr = _psnr(_shown_image(page), ref)
+        shown = _shown_image(page)
+        psnr = _psnr(shown, ref)
         if psnr > 25 or time.time() > deadline:
-            return psnr
+            return psnr, shown
         time.sleep(0.5)
 
 
@@ -152,8 +153,7 @@ def test_the_page_shows_evals_render_of_the_camera(learned_run, page):
     _wait_for_full_frame(page)
     ref, other = _eval_render(learned_run, "test/r_8.png"), _eval_render(learned_run, "test/r_0.png")
     assert ref.std() > 10  # the model, not an empty background
-    shown = _shown_image(page)
-    psnr = _shows(page, ref)
+    psnr, shown = _shows(page, ref)
     # JPEG and the browser's resampling cost a little; another camera or a blank frame costs far more
     assert psnr > 25, f"the viewer shows something else than eval's render (PSNR {psnr:.1f} dB)"
     assert _psnr(shown, other) < psnr - 5
@@ -167,7 +167,7 @@ def test_the_camera_list_jumps_to_the_picked_camera(learned_run, page):
     field.fill("test/r_0")
     page.get_by_role("option", name="test/r_0.png").click()
     ref = _eval_render(learned_run, "test/r_0.png")
-    psnr = _shows(page, ref, timeout=60)
+    psnr, _ = _shows(page, ref, timeout=60)
     assert psnr > 25, f"after picking test/r_0.png the viewer does not show it (PSNR {psnr:.1f} dB)"
 
 
