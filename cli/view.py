@@ -1,6 +1,7 @@
 """`splatk view RUN --port 8080`: look around a run in the browser (viser), drawn by splatk."""
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -91,6 +92,7 @@ def command(run, port, host, camera, max_size, fps, backend, device, scene):
     Console(stderr=True).print(f"splatk view: http://{host}:{server.get_port()} (Ctrl-C to stop)",
                                markup=False, highlight=False)
     planners: dict[int, FramePlanner] = {}
+    old_term = signal.signal(signal.SIGTERM, _stop)
     try:
         while True:
             # one render at a time keeps the CPU for it; each browser gets a frame when its camera
@@ -111,4 +113,11 @@ def command(run, port, host, camera, max_size, fps, backend, device, scene):
     except KeyboardInterrupt:
         pass
     finally:
+        signal.signal(signal.SIGTERM, old_term)
         server.stop()
+
+
+def _stop(signum, frame):
+    # SIGTERM (a service manager, `kill`, a background job that ignores Ctrl-C) stops the viewer
+    # as Ctrl-C does: the server closes and the command exits 0
+    raise KeyboardInterrupt

@@ -89,7 +89,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_serves_the_viewer_and_stops_on_ctrl_c(run):
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_serves_the_viewer_and_stops_on_ctrl_c_or_sigterm(run, stop):
     pytest.importorskip("viser")
     port = _free_port()
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -106,10 +107,11 @@ def test_serves_the_viewer_and_stops_on_ctrl_c(run):
             except OSError:
                 time.sleep(0.5)
         assert page is not None and "<html" in page.lower(), proc.stderr.read() if proc.poll() is not None else ""
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         out, err = proc.communicate(timeout=30)
         assert proc.returncode == 0, err
         assert f"http://127.0.0.1:{port}" in err
+        assert "Traceback" not in err and "Aborted" not in err, err
     finally:
         if proc.poll() is None:
             proc.kill()
