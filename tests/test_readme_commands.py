@@ -17,7 +17,8 @@ def _readme_test_command() -> str:
 def test_ci_runs_the_readme_test_command():
     command = _readme_test_command()
     assert "\n" not in command, "the README's test command is one line"
-    assert "install_lpips_weights.sh" in command, "the README's test command installs the LPIPS weights"
+    assert "install_test_assets.sh" in command, \
+        "the README's test command installs the LPIPS weights and the viewer test's browser"
     ci_lines = [ln.strip() for ln in (ROOT / ".ci" / "run").read_text().splitlines()]
     assert command in ci_lines, f".ci/run does not run the README's test command {command!r}"
     assert not any("pytest" in ln for ln in ci_lines if ln != command and not ln.startswith("#")), \
