@@ -11,6 +11,8 @@ scenes of decision 0100.
 """
 from __future__ import annotations
 
+#: the value of ``k`` that lets the scene choose
+AUTO_K = "auto"
 #: (least pixels per primitive, k), first match wins
 K_BY_PIXELS_PER_PRIMITIVE = ((1.2, 8), (0.6, 4), (0.0, 2))
 
@@ -26,3 +28,13 @@ def choose_k(pixels_per_view: float, budget: int) -> int:
 def rule_text() -> str:
     parts = [f"k = {k} from {least:g}" for least, k in K_BY_PIXELS_PER_PRIMITIVE]
     return "train pixels per view / budget: " + ", ".join(parts) + " (decision 0102)"
+
+
+def resolve_auto_k(kernel_options: dict, pixels_per_view: float, budget: int) -> dict | None:
+    """With ``k: auto`` in ``kernel_options``, set k from the scene and return how it was chosen;
+    None when k was given."""
+    if kernel_options.get("k") != AUTO_K:
+        return None
+    k = kernel_options["k"] = choose_k(pixels_per_view, budget)
+    return {"k": k, "pixels_per_view": round(pixels_per_view), "budget": budget,
+            "pixels_per_primitive": round(pixels_per_view / budget, 3), "rule": rule_text()}

@@ -24,6 +24,7 @@ from ..errors import InputError, TrainingStalled
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
+from ..kernels.auto_k import resolve_auto_k
 from ..models.init import initial_points
 from ..models.io import model_spec
 from ..models.planar import PlanarModel
@@ -31,7 +32,7 @@ from ..models.volumetric import SplatModel
 from ..outputs import OutputDir, check_output_dir
 from ..train.trainer import StepInfo, Trainer
 from .autobudget import AutoBudget, render_psnr, split_holdout
-from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, resolve_auto_k, color_options as _color_options,
+from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, color_options as _color_options,
                          fit_config_from_options)
 from .run_folder import RunFolder, clean_resume_leftovers, record_resume_changes, write_config
 
@@ -236,7 +237,8 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
             raise InputError(scene_path, "the scene changed since the run started (its images, cameras or points "
                              "differ from the checkpoint's)", "restore the scene, or start a new run with another --out")
     if not resume:
-        chosen = resolve_auto_k(cfg, sum(v.width * v.height for v in scene.train) / len(scene.train))
+        pixels = sum(v.width * v.height for v in scene.train) / len(scene.train)
+        chosen = resolve_auto_k(cfg.kernel_options, pixels, cfg.train.budget)
         if chosen is not None:
             config_sources = {**(config_sources or {}), "k": f"auto: {chosen['pixels_per_primitive']} train pixels "
                               f"per primitive gives k = {chosen['k']} ({chosen['rule']})"}

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from ..errors import InputError
+from ..kernels.auto_k import AUTO_K
 from ..machine import memory_bytes
 from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
 from ..train.adc import ADCConfig
@@ -305,34 +306,15 @@ def bytes_per_primitive(cfg: FitConfig) -> tuple[int, int]:
     return 4 * model.floats_per_primitive(), 4 * sum(p.numel() for p in model.kernel.parameters())
 
 
-#: the value of ``k`` that lets the scene choose (:func:`resolve_auto_k`)
-AUTO_K = "auto"
-
-
 def _read_k(value, sources: dict):
-    """``--k``: a whole number, or ``auto``."""
-    if isinstance(value, str):
-        text = value.strip().lower()
-        if text == AUTO_K:
-            return AUTO_K
-        if text.isdigit():
-            return int(text)
+    """``--k``: a whole number, or ``auto`` (resolved when the scene is loaded)."""
+    text = value.strip().lower() if isinstance(value, str) else None
+    if text is None or text == AUTO_K:
+        return AUTO_K if text == AUTO_K else value
+    if not text.isdigit():
         raise option_error("k", value, "is not a whole number or auto", "e.g. --k 2, --k 8 or --k auto",
                            sources.get("k"))
-    return value
-
-
-def resolve_auto_k(cfg: FitConfig, pixels_per_view: float) -> dict | None:
-    """With ``k: auto``, set the learned kernel's k from the scene (:mod:`splatk.kernels.auto_k`)
-    and return how it was chosen; None when k was given."""
-    from ..kernels.auto_k import choose_k, rule_text
-
-    if cfg.kernel_options.get("k") != AUTO_K:
-        return None
-    k = choose_k(pixels_per_view, cfg.train.budget)
-    cfg.kernel_options["k"] = k
-    return {"k": k, "pixels_per_view": round(pixels_per_view), "budget": cfg.train.budget,
-            "pixels_per_primitive": round(pixels_per_view / cfg.train.budget, 3), "rule": rule_text()}
+    return int(text)
 
 
 def color_options(cfg: FitConfig) -> dict:
