@@ -216,7 +216,7 @@ def _load_checked_scene(scene_path, cfg: FitConfig):
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every,
-                       background=tuple(cfg.background) if cfg.background else None)
+                       background=tuple(cfg.background) if cfg.background else None, eval_split=cfg.eval_split)
     if cfg.view_stride > 1:
         scene.train = scene.train[::cfg.view_stride]
     if len(scene.train) == 0:
@@ -305,6 +305,7 @@ class FitRun:
             "scene": str(Path(scene_path).resolve()),
             "downscale": cfg.downscale,
             "test_every": cfg.test_every,
+            "eval_split": cfg.eval_split,
             "background": list(scene.background),
             "primitive": cfg.primitive,
             "scene_fingerprint": fingerprint,
