@@ -108,7 +108,8 @@ def export_renders(run: str | Path, out: str | Path, backend: str = "auto", gif_
     renderer = backends.get(backend, "cpu")
     scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0),
                        test_every=meta.get("test_every", 8),
-                       background=tuple(meta["background"]) if meta.get("background") else None)
+                       background=tuple(meta["background"]) if meta.get("background") else None,
+                       eval_split=meta.get("eval_split", "held-out"))
     with OutputDir(out, RENDERS_KIND, overwrite, inputs=inputs):
         _write_renders(model, scene, out, renderer, gif_frames)
     return out

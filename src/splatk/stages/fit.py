@@ -199,14 +199,16 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 
 def scene_fingerprint(scene) -> str:
-    """A hash of what training reads from the scene: every view's name, size, intrinsics, pose
-    and pixels, and the SfM points."""
+    """A hash of what training reads from the scene: every view's name, size, intrinsics, pose,
+    pixels and mask, and the SfM points."""
     h = hashlib.sha256()
     for cam in scene.train + scene.test:
         h.update(f"{cam.name}|{cam.width}|{cam.height}|{cam.fx}|{cam.fy}|{cam.cx}|{cam.cy}".encode())
         h.update(cam.world_to_cam.contiguous().numpy().tobytes())
         if cam.image is not None:
             h.update(cam.image.contiguous().numpy().tobytes())
+        if cam.mask is not None:  # a scene without masks keeps the fingerprint it had
+            h.update(cam.mask.contiguous().numpy().tobytes())
     h.update(scene.points.contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
 
