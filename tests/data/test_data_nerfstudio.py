@@ -129,3 +129,23 @@ def test_a_corrupt_ply_or_a_missing_mask_names_the_file(cup, tmp_path):
     cv2.imwrite(str(mask), np.zeros((7, 9), np.uint8))
     with pytest.raises(InputError, match="mask is 9x7"):
         load_scene(root, load_images=False)
+
+
+@pytest.mark.parametrize("k", [(0.0, 0.0, 0.0, 0.0), (0.08, 0.02, -0.01, 0.002), (-0.05, 0.01, 0.0, 0.0),
+                               (0.3, 0.1, 0.0, 0.0)])
+def test_fisheye_undistortion_draws_every_pixel_from_inside_the_photo(k):
+    """balance = 0: the pinhole's focal length leaves no pixel without a source (no smeared border)."""
+    from splatk.data.cameras import Undistorter, fisheye_intrinsics
+
+    intr = fisheye_intrinsics(320, 240, 200.0, 200.0, 160.0, 120.0, k)
+    und = Undistorter()
+    out, roi = und.geometry(intr)
+    assert roi == (0, 0, 320, 240) and (out.width, out.height) == (320, 240)
+    # every border pixel of the pinhole image, sent through the fisheye lens (cv2.fisheye.distortPoints
+    # of its normalised coordinates), lands inside the fisheye photo
+    border = [(x, y) for x in range(320) for y in (0, 239)] + [(x, y) for y in range(240) for x in (0, 319)]
+    pts = np.array(border, np.float64) + 0.5  # pixel centres
+    normalised = np.stack([(pts[:, 0] - out.cx) / out.fx, (pts[:, 1] - out.cy) / out.fy], -1)
+    src = cv2.fisheye.distortPoints(normalised.reshape(-1, 1, 2), cv_K(200.0, 200.0, 160.0, 120.0),
+                                    np.array(k).reshape(4, 1)).reshape(-1, 2) + 0.5
+    assert src[:, 0].min() >= 0 and src[:, 0].max() <= 320 and src[:, 1].min() >= 0 and src[:, 1].max() <= 240

@@ -46,7 +46,7 @@ def read_downscaled(view: View, folder: Path, small: Path, factor: int) -> View:
         InputError: naming ``small``, when the image is missing there or not 1/``factor`` of
             the original's size (within a pixel).
     """
-    rel = Path(os.path.normpath(view.path.relative_to(folder)))
+    rel = Path(os.path.normpath(view.path)).relative_to(os.path.normpath(folder))
     path = resolve_image(small / rel)
     if path is None:
         raise InputError(small, f"has no {rel.as_posix()} (the 1/{factor} copy of {folder.name}/{rel.as_posix()})",
