@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from splatk.backends import backend_names
+from splatk.data import EVAL_SPLITS
 from splatk.kernels import kernel_names
 from splatk.colors import COLOR_MODELS
 from splatk.train.strategies import STRATEGIES
@@ -48,7 +49,7 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
               "scene has it. [default: 1]")
 @click.option("--test-every", type=int, help="Every N-th image (name order) is a test view when the dataset names "
               "no test list. [default: 8]")
-@click.option("--eval-split", type=click.Choice(["held-out", "all", "none"]),
+@click.option("--eval-split", type=click.Choice(EVAL_SPLITS),
               help="Test views: held-out (the dataset's test list, else every --test-every-th view), all (every "
                    "view trains and is evaluated), none (every view trains; `splatk eval` then needs --split "
                    "train). [default: held-out]")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from ..data import EVAL_SPLITS
 from ..errors import InputError
 from ..machine import memory_bytes
 from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
@@ -331,7 +332,7 @@ RULES = [
     ("primitive", "primitive", choice(*PRIMITIVES)),
     ("downscale", "downscale", float_range(1.0, 1e4)),
     ("test_every", "test_every", int_range(1)),
-    ("eval_split", "eval_split", choice("held-out", "all", "none")),
+    ("eval_split", "eval_split", choice(*EVAL_SPLITS)),
     ("train.random_background", "random_background", BOOL),
     ("view_stride", "view_stride", int_range(1)),
     ("threads", "threads", int_range(0, MAX_THREADS)),
