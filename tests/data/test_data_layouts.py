@@ -1,7 +1,8 @@
 """Standard dataset layouts load as their papers use them: Mip-NeRF 360 (images_N/ for
 --downscale N, every 8th view for test), NeRF-synthetic (800 px RGBA, its own test split), Tanks
 & Temples and Deep Blending as the 3DGS repository ships them (COLMAP sparse/0 + images/ per
-scene folder), and nerfstudio's images_N/. Tiny copies are built in tmp_path by layouts.py."""
+scene folder), and nerfstudio's images_N/; COLMAP's fisheye camera models are OpenCV's fisheye
+model. Tiny copies are built in tmp_path by layouts.py."""
 from __future__ import annotations
 
 import json
@@ -129,3 +130,29 @@ def test_nerfstudio_images_n(shared_data, tmp_path):
     write_downscaled(root / "images", 2, size=(90, 70))
     with pytest.raises(InputError, match="images_2"):
         load_scene(root, downscale=2, load_images=False)
+
+
+@pytest.mark.parametrize("model, params", [
+    ("SIMPLE_FISHEYE", [50.0, 20.0, 15.0]),
+    ("FISHEYE", [50.0, 52.0, 20.0, 15.0]),
+    ("SIMPLE_RADIAL_FISHEYE", [50.0, 20.0, 15.0, 0.1]),
+    ("RADIAL_FISHEYE", [50.0, 20.0, 15.0, 0.1, -0.02]),
+    ("OPENCV_FISHEYE", [50.0, 52.0, 20.0, 15.0, 0.1, 0.02, -0.01, 0.001]),
+])
+def test_colmap_fisheye_models_are_opencv_fisheye(model, params):
+    """Each COLMAP fisheye model projects as the cv2.fisheye camera splatk reads it as."""
+    import pycolmap
+
+    from splatk.data.colmap import _intrinsics
+
+    cam = pycolmap.Camera.create_from_model_id(1, getattr(pycolmap.CameraModelId, model), 50.0, 40, 30)
+    cam.params = params
+    intr = _intrinsics(cam, None)
+    assert intr.fisheye and len(intr.dist) == 4
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.uniform(-0.6, 0.6, (50, 2)), np.ones((50, 1))], axis=1)
+    expected = cam.img_from_cam(points)  # COLMAP: pixel centres at +0.5
+    K = np.array([[intr.fx, 0.0, intr.cx - 0.5], [0.0, intr.fy, intr.cy - 0.5], [0.0, 0.0, 1.0]])
+    got, _ = cv2.fisheye.projectPoints(points.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
+                                       np.array(intr.dist).reshape(4, 1))
+    assert np.allclose(got.reshape(-1, 2) + 0.5, expected, atol=1e-6)

@@ -85,6 +85,8 @@ def test_fit_prints_unused_fields_once(shared_data, tmp_path):
     assert res.exit_code == 0, res.output
     lines = [ln for ln in res.output.splitlines() if "warning:" in ln]
     assert len(lines) == 1 and "depth_unit_scale_factor" in lines[0], res.output
+    summary = json.loads((tmp_path / "run" / "fit.json").read_text())
+    assert len(summary["scene_warnings"]) == 1 and "depth_unit_scale_factor" in summary["scene_warnings"][0]
 
 
 @pytest.fixture(scope="module")

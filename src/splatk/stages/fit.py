@@ -362,6 +362,7 @@ class FitRun:
             "initial_psnr": self.initial_psnr,
             "view_stride": cfg.view_stride,
             "train_views": len(trainer.scene.train),
+            "scene_warnings": list(scene.warnings),  # fields the loader read past (fit prints them too)
         }
         if auto is not None:
             summary["auto_budget"] = auto.report(self.holdout)
