@@ -19,10 +19,9 @@ import os
 from pathlib import Path
 
 import numpy as np
-
-from ..errors import InputError
 import torch
 
+from ..errors import InputError
 from ._common import (View, check_downscale, check_image_file, check_translation, has_control_characters, image_size,
                       is_inside, make_camera, resolve_image, rigid_or_none, split_every)
 from .cameras import Intrinsics, Undistorter, fisheye_intrinsics, pinhole
@@ -35,7 +34,8 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
                    "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye", "camera_model")
-#: nerfstudio's ``camera_model`` values read as OpenCV's perspective model (k1 k2 k3 k4 p1 p2)
+#: nerfstudio's ``camera_model`` values read as OpenCV's perspective model (k1 k2 p1 p2 k3, and k4
+#: as its rational term, as nerfstudio hands them to cv2)
 PERSPECTIVE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 FISHEYE_MODELS = ("OPENCV_FISHEYE",)
 #: fields read besides the intrinsics
