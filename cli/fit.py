@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from splatk.backends import backend_names
+from splatk.data import EVAL_SPLITS
 from splatk.kernels import kernel_names
 from splatk.colors import COLOR_MODELS
 from splatk.train.strategies import STRATEGIES
@@ -45,12 +46,18 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
               "from the bytes each takes and the kernel's networks (4194304, 4MB, 512KB).")
 @click.option("--iters", type=int, help="Training iterations. [default: 30000]")
 @click.option("--time-budget", help="Wall-clock training budget, e.g. 10m, 90s, 1h30m.")
-@click.option("--downscale", type=float, help="Image downscale factor. [default: 1]")
+@click.option("--downscale", type=float, help="Image downscale factor; a whole number N reads images_N/ where the "
+              "scene has it. [default: 1]")
 @click.option("--test-every", type=int, help="Every N-th image (name order) is a test view when the dataset names "
               "no test list. [default: 8]")
-@click.option("--background", type=click.Choice(["white", "black"]),
-              help="Colour RGBA images are composited on and renders use. [default: white for transforms.json "
-                   "scenes, black for COLMAP]")
+@click.option("--eval-split", type=click.Choice(EVAL_SPLITS),
+              help="Test views: held-out (the dataset's test list, else every --test-every-th view), all (every "
+                   "view trains and is evaluated), none (every view trains; `splatk eval` then needs --split "
+                   "train). [default: held-out]")
+@click.option("--background", type=click.Choice(["white", "black", "random"]),
+              help="Colour RGBA images are composited on and renders use; random: a new colour every training "
+                   "step (RGBA images recomposited on it), the default colour for evaluation. [default: white "
+                   "for transforms.json scenes, black for COLMAP]")
 @click.option("--init", "init", type=click.Choice(["auto", "sfm", "random"]),
               help="Initial primitives: SfM points, random, or auto (SfM points when the scene has them). [default: auto]")
 @click.option("--seed", type=int, help="Random seed. [default: 0]")
@@ -76,6 +83,16 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.pass_context
 def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts):
     """Reconstruct SCENE (COLMAP sparse/0 + images/, or transforms*.json) into RUN.
+
+    SCENE layouts: COLMAP (sparse/0 or sparse/ + images/; pinhole, OpenCV and fisheye camera
+    models; Mip-NeRF 360, and Tanks & Temples and Deep Blending as the 3DGS repository ships
+    them), NeRF-synthetic (transforms_train.json + transforms_test.json, whose test list is the
+    test split) and instant-ngp / nerfstudio (transforms.json; camera_model OPENCV_FISHEYE,
+    mask_path: black pixels leave the loss and the metrics, ply_file_path: the initial points).
+    Every camera is undistorted to a pinhole. --downscale N (a whole number) reads images_N/
+    beside images/ when it exists, scaling the intrinsics by the actual size ratio; an image
+    there that is not 1/N of its original is an error naming the folder. A dataset field splatk
+    does not read is named in a warning.
 
     RUN/train_log.jsonl gets a JSON line every 100 iterations and at every training event, with
     the fields it (iteration), loss (training loss), psnr (PSNR in dB of that iteration's training
@@ -104,6 +121,8 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
     def on_start(info):
         task["started"] = True
         s, run_cfg = info["scene"], info["config"]
+        for w in s.warnings:  # what the loader read past without using
+            console.print(f"[yellow]warning: {w}")
         console.print(
             f"[bold]splatk fit[/] {s.root}: {len(s.train)} train / {len(s.test)} test views "
             f"{s.train[0].width}x{s.train[0].height}, {info['model'].num_primitives:,} initial primitives, "

@@ -196,9 +196,9 @@ def test_damaged_model_file(fname, damage, colmap, old_run):
 
 
 def test_unsupported_camera_model(tmp_path):
-    root = tiny_colmap(tmp_path / "fisheye", model="OPENCV_FISHEYE")
+    root = tiny_colmap(tmp_path / "fisheye", model="THIN_PRISM_FISHEYE")
     m = expect_error(fit(root, tmp_path / "run"), "cameras.bin", "SIMPLE_RADIAL")
-    assert "OPENCV_FISHEYE" in m["problem"]
+    assert "THIN_PRISM_FISHEYE" in m["problem"]
 
 
 def test_unknown_camera_model_id(colmap, tmp_path):

@@ -219,7 +219,7 @@ def test_missing_model_file(tiny_colmap):
     expect_error(root, "points3D.bin", load_images=False)
 
 
-@pytest.mark.parametrize("model", ["FOV", "THIN_PRISM_FISHEYE", "OPENCV_FISHEYE"])
+@pytest.mark.parametrize("model", ["FOV", "THIN_PRISM_FISHEYE", "EQUIRECTANGULAR"])
 @pytest.mark.parametrize("text", [False, True])
 def test_unsupported_camera_model(model, text, tiny_colmap):
     root = tiny_colmap(model=model, text=text)
@@ -238,7 +238,9 @@ def test_corrupt_cameras_txt(tiny_colmap):
 # ---------------------------------------------------------------------------------------------- allowed input
 
 
-@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"])
+@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+                                   "SIMPLE_FISHEYE", "FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE",
+                                   "OPENCV_FISHEYE"])
 def test_supported_models_load(model, tiny_colmap):
     sc = load_scene(tiny_colmap(model=model, n_images=3))
     assert len(sc.cameras) == 3 and sc.cameras[0].image.shape == (30, 40, 3)

@@ -46,7 +46,9 @@ def matrices(draw):
 
 FILE_PATHS = st.one_of(st.sampled_from(["./train/r_1", "./train/r_2", "./train/r_3", "./train/r_4"]), TEXT, JUNK)
 INTRINSIC_KEYS = ["camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h",
-                  "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye"]
+                  "k1", "k2", "k3", "k4", "p1", "p2", "is_fisheye", "camera_model",
+                  # nerfstudio's files: a mask per frame, a point cloud
+                  "mask_path", "ply_file_path"]
 INTRINSICS = st.dictionaries(st.sampled_from(INTRINSIC_KEYS),
                              st.one_of(NUMBERS, st.floats(0.1, 3.0), st.floats(1, 100), JUNK), max_size=5)
 
@@ -101,7 +103,10 @@ PLAUSIBLE = {"camera_angle_x": st.floats(0.01, 3.1), "camera_angle_y": st.floats
              "fl_x": st.floats(0.5, 200.0), "fl_y": st.floats(0.5, 200.0), "cx": st.floats(-20.0, 40.0),
              "cy": st.floats(-20.0, 40.0), "w": st.integers(0, 20), "h": st.integers(0, 20),
              "k1": st.floats(-2.0, 2.0), "k2": st.floats(-2.0, 2.0), "k3": st.floats(-2.0, 2.0),
-             "k4": st.floats(-2.0, 2.0), "p1": st.floats(-0.5, 0.5), "p2": st.floats(-0.5, 0.5)}
+             "k4": st.floats(-2.0, 2.0), "p1": st.floats(-0.5, 0.5), "p2": st.floats(-0.5, 0.5),
+             "camera_model": st.sampled_from(["OPENCV", "OPENCV_FISHEYE", "PINHOLE", "EQUIRECTANGULAR"]),
+             "mask_path": st.sampled_from(["./train/r_1.png", "./test/r_0.png", "transforms_test.json", "train"]),
+             "ply_file_path": st.sampled_from(["transforms_test.json", "train/r_1.png", "none.ply", "."])}
 
 
 @st.composite

@@ -1,8 +1,10 @@
 """Scenes on disk -> cameras, images, points.
 
-``load_scene`` detects the layout: ``sparse/0`` or ``sparse/`` (COLMAP, read with pycolmap) or
-``transforms*.json`` (instant-ngp / NeRF-synthetic). Every camera comes out as an undistorted
-OpenCV pinhole; bad input raises :class:`splatk.errors.InputError` naming the file.
+``load_scene`` detects the layout: ``sparse/0`` or ``sparse/`` (COLMAP, read with pycolmap: also
+Mip-NeRF 360, Tanks & Temples and Deep Blending as 3DGS ships them) or ``transforms*.json``
+(instant-ngp / nerfstudio / NeRF-synthetic). Every camera comes out as an undistorted OpenCV
+pinhole; bad input raises :class:`splatk.errors.InputError` naming the file, and what a loader
+reads past without using is in ``Scene.warnings``.
 """
 from __future__ import annotations
 
@@ -13,8 +15,13 @@ from .colmap import SUPPORTED_MODELS, find_model_dir, load_colmap
 from .transforms import find_transforms, load_transforms
 from .types import Camera, Scene
 
-__all__ = ["Camera", "Scene", "SUPPORTED_MODELS", "detect_format", "load_colmap", "load_scene",
+__all__ = ["Camera", "Scene", "SUPPORTED_MODELS", "EVAL_SPLITS", "detect_format", "load_colmap", "load_scene",
            "load_transforms", "scene_summary"]
+
+#: which views a scene holds out: ``held-out`` (the dataset's test list, else every
+#: ``test_every``-th view), ``all`` (every view trains and is evaluated, as nerfstudio's
+#: ``eval_mode all``), ``none`` (every view trains; no test views)
+EVAL_SPLITS = ("held-out", "all", "none")
 
 
 def detect_format(path: str | Path) -> str:
@@ -39,7 +46,8 @@ def detect_format(path: str | Path) -> str:
 
 
 def load_scene(path: str | Path, downscale: float = 1.0, test_every: int = 8,
-               background: tuple[float, float, float] | None = None, load_images: bool = True) -> Scene:
+               background: tuple[float, float, float] | None = None, load_images: bool = True,
+               eval_split: str = "held-out") -> Scene:
     """Load a scene folder in any supported layout.
 
     Args:
@@ -50,7 +58,11 @@ def load_scene(path: str | Path, downscale: float = 1.0, test_every: int = 8,
         background: RGB in [0, 1] for RGBA compositing and rendering; default white (1, 1, 1) for
             transforms scenes (NeRF-synthetic convention), black (0, 0, 0) for COLMAP scenes.
         load_images: decode images (False: cameras only, e.g. for listing or export).
+        eval_split: ``held-out``, ``all`` or ``none`` (:data:`EVAL_SPLITS`).
     """
+    if eval_split not in EVAL_SPLITS:
+        raise InputError(None, f"eval split {eval_split!r} is not one of {', '.join(EVAL_SPLITS)}",
+                         "use --eval-split held-out, all or none")
     fmt = detect_format(path)
     if background is not None:
         background = tuple(float(b) for b in background)
@@ -58,10 +70,15 @@ def load_scene(path: str | Path, downscale: float = 1.0, test_every: int = 8,
             raise InputError(None, f"background must have 3 values (RGB in [0, 1]), got {background}",
                              "e.g. 1,1,1 for white")
     if fmt == "colmap":
-        return load_colmap(path, downscale=downscale, test_every=test_every, load_images=load_images,
-                           background=background or (0.0, 0.0, 0.0))
-    return load_transforms(path, downscale=downscale, test_every=test_every,
-                           background=background or (1.0, 1.0, 1.0), load_images=load_images)
+        scene = load_colmap(path, downscale=downscale, test_every=test_every, load_images=load_images,
+                            background=background or (0.0, 0.0, 0.0))
+    else:
+        scene = load_transforms(path, downscale=downscale, test_every=test_every,
+                                background=background or (1.0, 1.0, 1.0), load_images=load_images)
+    if eval_split != "held-out":
+        views = sorted(scene.train + scene.test, key=lambda c: c.name)
+        scene.train, scene.test = views, (list(views) if eval_split == "all" else [])
+    return scene
 
 
 def scene_summary(scene: Scene) -> dict:
@@ -77,4 +94,6 @@ def scene_summary(scene: Scene) -> dict:
         "points": int(scene.points.shape[0]),
         "background": list(scene.background),
         "images_loaded": all(c.image is not None for c in scene.cameras),
+        "masks": sum(c.mask is not None for c in scene.cameras),
+        "warnings": list(scene.warnings),
     }

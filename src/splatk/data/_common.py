@@ -1,9 +1,6 @@
-"""Pieces both loaders share: image checks and decoding, undistortion, downscaling, poses, splits.
+"""Pieces both loaders share: image checks and decoding, downscaling, poses, splits.
 
-Pixel convention (as in :class:`~splatk.data.types.Camera` and COLMAP): pixel (i, j) has its centre
-at (i + 0.5, j + 0.5). OpenCV puts pixel centres on integers, so principal points are shifted by
-0.5 on the way into and out of ``cv2``. With half-pixel centres, resizing by s scales
-fx, fy, cx, cy by exactly s.
+Intrinsics and undistortion live in :mod:`splatk.data.cameras`.
 """
 from __future__ import annotations
 
@@ -19,6 +16,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from .cameras import FLOAT32_SAFE, Intrinsics, Undistorter, scaled
 from .types import Camera
 
 T = TypeVar("T")
@@ -26,39 +24,12 @@ T = TypeVar("T")
 #: image suffixes tried when a file name has none (NeRF-synthetic ``./train/r_0``)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr", ".webp")
 
-#: largest magnitude accepted for a coordinate, focal length or principal point: its square must
-#: stay finite in float32 (max 3.4e38), since the renderer squares distances
-FLOAT32_SAFE = 1e18
-
 #: peak bytes per pixel while :func:`read_image` decodes one image (the decoded 4-channel image,
 #: its float32 copy and the float32 RGB / compositing temporaries), rounded up
 DECODE_BYTES_PER_PIXEL = 64
 
 #: OpenCV refuses to decode more pixels than this (its CV_IO_MAX_IMAGE_PIXELS default)
 OPENCV_MAX_PIXELS = 1 << 30
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """A (possibly distorted) perspective camera: size, pinhole part and OpenCV distortion.
-
-    ``dist`` is in OpenCV order (k1, k2, p1, p2[, k3[, k4, k5, k6]]); all zeros means pinhole.
-    """
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    dist: tuple[float, ...] = ()
-
-    @property
-    def distorted(self) -> bool:
-        return any(d != 0.0 for d in self.dist)
-
-    def values(self) -> list[float]:
-        return [self.fx, self.fy, self.cx, self.cy, *self.dist]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -179,8 +150,8 @@ def image_size(path: Path) -> tuple[int, int]:
     return width, height
 
 
-def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """Decode an image to [H, W, 3] uint8 RGB; RGBA is composited onto ``background`` (RGB in [0, 1])."""
+def _decode(path: Path) -> np.ndarray:
+    """The pixels of an image file as ``cv2.imdecode(..., IMREAD_UNCHANGED)`` returns them."""
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as e:
@@ -191,8 +162,33 @@ def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.
     if img is None or img.size == 0:
         raise InputError(path, "image cannot be decoded (corrupt or not an image)",
                          "re-copy or replace the file, or remove it from the scene")
-    rgb = to_rgb(img, path, background)
-    return np.ascontiguousarray(np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8))
+    return img
+
+
+def _to_uint8(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8))
+
+
+def read_image(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Decode an image to [H, W, 3] uint8 RGB; RGBA is composited onto ``background`` (RGB in [0, 1])."""
+    return read_image_and_alpha(path, background)[0]
+
+
+def read_image_and_alpha(path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)
+                         ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(:func:`read_image`'s [H, W, 3] uint8 RGB, its alpha channel as [H, W] uint8 or None)."""
+    img = _decode(path)
+    alpha = None
+    if img.ndim == 3 and img.shape[2] in (2, 4):
+        scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
+        alpha = _to_uint8(np.clip(img[:, :, -1].astype(np.float32) / scale, 0.0, 1.0))
+    return _to_uint8(to_rgb(img, path, background)), alpha
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """A mask image as [H, W] bool: True (the pixel counts) where it is brighter than 50% grey;
+    transparent pixels of an RGBA mask count as black."""
+    return to_rgb(_decode(path), path).mean(axis=2) >= 0.5
 
 
 def to_rgb(img: np.ndarray, path: Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -231,114 +227,56 @@ def to_rgb(img: np.ndarray, path: Path, background: Sequence[float] = (0.0, 0.0,
 # undistortion and downscaling
 
 
-class Undistorter:
-    """Maps distorted cameras to undistorted pinhole ones; caches per distinct camera.
-
-    ``cv2.getOptimalNewCameraMatrix`` with alpha = 0 (only valid pixels), then
-    ``initUndistortRectifyMap`` + ``remap`` and a crop to the valid ROI (cx, cy shift by the crop).
-    """
-
-    def __init__(self) -> None:
-        self._geo: dict[Intrinsics, tuple[Intrinsics, tuple[int, int, int, int]]] = {}
-        self._maps: dict[Intrinsics, tuple[np.ndarray, np.ndarray]] = {}
-
-    @staticmethod
-    def _cv_K(intr: Intrinsics) -> np.ndarray:
-        # OpenCV pixel centres are integers: shift the half-pixel-convention principal point
-        return np.array([[intr.fx, 0.0, intr.cx - 0.5], [0.0, intr.fy, intr.cy - 0.5], [0.0, 0.0, 1.0]])
-
-    def geometry(self, intr: Intrinsics) -> tuple[Intrinsics, tuple[int, int, int, int]]:
-        """Undistorted pinhole intrinsics (after the crop) and the crop ROI (x, y, w, h)."""
-        if not intr.distorted:
-            return intr, (0, 0, intr.width, intr.height)
-        if intr not in self._geo:
-            size = (intr.width, intr.height)
-            newK, roi = cv2.getOptimalNewCameraMatrix(self._cv_K(intr), np.asarray(intr.dist, np.float64),
-                                                      size, 0, size)
-            x, y, w, h = (int(v) for v in roi)
-            if w <= 0 or h <= 0:  # degenerate distortion: keep the full frame
-                x, y, w, h = 0, 0, intr.width, intr.height
-            out = Intrinsics(w, h, float(newK[0, 0]), float(newK[1, 1]),
-                             float(newK[0, 2]) + 0.5 - x, float(newK[1, 2]) + 0.5 - y)
-            self._geo[intr] = (out, (x, y, w, h))
-        return self._geo[intr]
-
-    def apply(self, image: np.ndarray, intr: Intrinsics) -> np.ndarray:
-        if not intr.distorted:
-            return image
-        out, (x, y, w, h) = self.geometry(intr)
-        if intr not in self._maps:
-            size = (intr.width, intr.height)
-            newK = np.array([[out.fx, 0.0, out.cx - 0.5 + x], [0.0, out.fy, out.cy - 0.5 + y], [0.0, 0.0, 1.0]])
-            self._maps[intr] = cv2.initUndistortRectifyMap(
-                self._cv_K(intr), np.asarray(intr.dist, np.float64), None, newK, size, cv2.CV_32FC1)
-        m1, m2 = self._maps[intr]
-        und = cv2.remap(image, m1, m2, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return np.ascontiguousarray(und[y:y + h, x:x + w])
-
-
-def check_intrinsics(intr: Intrinsics, path: Path, where: str) -> None:
-    """Focal lengths positive, principal point at most one image size outside the image, every
-    value finite and at most :data:`FLOAT32_SAFE`; ``where`` names the camera in ``path``."""
-    values = intr.values()
-    if not all(math.isfinite(v) and abs(v) <= FLOAT32_SAFE for v in values):
-        raise InputError(path, f"{where} has a non-finite or out-of-range intrinsic value "
-                         f"({', '.join(f'{v:g}' for v in values)}; at most {FLOAT32_SAFE:g} in magnitude)",
-                         "fix the camera's intrinsics")
-    if not (intr.fx > 0 and intr.fy > 0):
-        raise InputError(path, f"{where} has focal length fx={intr.fx:g}, fy={intr.fy:g}; both must be positive",
-                         "focal lengths are in pixels, about the image width for a normal lens")
-    if not (-intr.width <= intr.cx <= 2 * intr.width and -intr.height <= intr.cy <= 2 * intr.height):
-        raise InputError(path, f"{where} has its principal point ({intr.cx:g}, {intr.cy:g}) more than an image "
-                         f"size outside its {intr.width}x{intr.height} image",
-                         "cx, cy are in pixels, usually near the image centre")
-
-
-def pinhole(intr: Intrinsics, undistorter: Undistorter, path: Path, where: str) -> Intrinsics:
-    """The undistorted pinhole camera of ``intr`` (checked), or InputError when its distortion
-    leaves no usable image."""
-    check_intrinsics(intr, path, where)
-    try:
-        out, _ = undistorter.geometry(intr)
-    except cv2.error:
-        out = None
-    if out is None or not (out.fx > 0 and out.fy > 0 and all(math.isfinite(v) and abs(v) <= FLOAT32_SAFE
-                                                             for v in out.values())):
-        raise InputError(path, f"{where}: its distortion coefficients ({', '.join(f'{d:g}' for d in intr.dist)}) "
-                         "leave no usable undistorted image",
-                         "check the distortion values (OpenCV order k1, k2, p1, p2, k3) or undistort the images first")
-    return out
-
-
-def scaled(intr: Intrinsics, downscale: float) -> Intrinsics:
-    """Intrinsics of the image resized by 1 / downscale (sizes rounded half up)."""
-    if downscale == 1.0:
-        return intr
-    w = max(1, int(intr.width / downscale + 0.5))
-    h = max(1, int(intr.height / downscale + 0.5))
-    sx, sy = w / intr.width, h / intr.height
-    return Intrinsics(w, h, intr.fx * sx, intr.fy * sy, intr.cx * sx, intr.cy * sy, intr.dist)
-
-
-def resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
+def resize(image: np.ndarray, width: int, height: int, nearest: bool = False) -> np.ndarray:
     if image.shape[1] == width and image.shape[0] == height:
         return image
-    interp = cv2.INTER_AREA if width <= image.shape[1] else cv2.INTER_LINEAR
+    interp = (cv2.INTER_NEAREST if nearest else cv2.INTER_AREA if width <= image.shape[1] else cv2.INTER_LINEAR)
     return np.ascontiguousarray(cv2.resize(image, (width, height), interpolation=interp))
 
 
-def make_camera(name: str, intr: Intrinsics, world_to_cam: np.ndarray, undistorter: Undistorter,
-                downscale: float, image: np.ndarray | None, image_path: Path | None) -> Camera:
-    """Undistort (if needed), downscale and wrap as a pinhole :class:`Camera`."""
+@dataclass
+class View:
+    """One checked view, before decoding: its camera and where its pixels are.
+
+    Attributes:
+        name: image name relative to the scene's image folder (as the dataset lists it).
+        intr: the camera of the file at ``path`` (an ``images_N`` file's: scaled to its size).
+        world_to_cam: [4, 4] rigid transform.
+        path: the image file to decode.
+        mask_path: a mask image (white: the pixel counts), or None.
+    """
+
+    name: str
+    intr: Intrinsics
+    world_to_cam: np.ndarray
+    path: Path
+    mask_path: Path | None = None
+
+
+def make_camera(view: View, undistorter: Undistorter, downscale: float, load_images: bool,
+                background: Sequence[float]) -> Camera:
+    """Decode (if ``load_images``), undistort, downscale and wrap ``view`` as a pinhole
+    :class:`Camera`; its mask and alpha channel go through the same warp."""
+    intr = view.intr
     pin, _ = undistorter.geometry(intr)
     out = scaled(pin, downscale)
-    img_t = None
-    if image is not None:
-        image = resize(undistorter.apply(image, intr), out.width, out.height)
-        img_t = torch.from_numpy(image)
-    return Camera(name=name, width=out.width, height=out.height, fx=out.fx, fy=out.fy, cx=out.cx, cy=out.cy,
-                  world_to_cam=torch.from_numpy(np.asarray(world_to_cam, dtype=np.float32).copy()),
-                  image=img_t, image_path=image_path)
+    image = alpha = mask = None
+    if load_images:
+        rgb, a = read_image_and_alpha(view.path, background)
+        if rgb.shape[:2] != (intr.height, intr.width):  # header and pixels disagree
+            raise InputError(view.path, f"decoded image is {rgb.shape[1]}x{rgb.shape[0]}, expected "
+                             f"{intr.width}x{intr.height}", "re-copy the image")
+        image = torch.from_numpy(resize(undistorter.apply(rgb, intr), out.width, out.height))
+        if a is not None:
+            alpha = torch.from_numpy(resize(undistorter.apply(a, intr), out.width, out.height))
+        if view.mask_path is not None:
+            m = read_mask(view.mask_path).astype(np.uint8)
+            m = resize(m, intr.width, intr.height, nearest=True)  # a full-size mask of an images_N view
+            m = resize(undistorter.apply(m, intr, nearest=True), out.width, out.height, nearest=True)
+            mask = torch.from_numpy(m.astype(bool))
+    return Camera(name=view.name, width=out.width, height=out.height, fx=out.fx, fy=out.fy, cx=out.cx, cy=out.cy,
+                  world_to_cam=torch.from_numpy(np.asarray(view.world_to_cam, dtype=np.float32).copy()),
+                  image=image, image_path=view.path, mask=mask, alpha=alpha)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
-"""COLMAP scenes: ``root/sparse/0`` (or ``root/sparse``) read with pycolmap, images in ``root/images``.
+"""COLMAP scenes: ``root/sparse/0`` (or ``root/sparse``) read with pycolmap, images in ``root/images``
+(or ``root/images_N`` for ``--downscale N``: :mod:`splatk.data.downscaled`).
 
-Every camera comes out as an undistorted pinhole (see :mod:`splatk.data._common`). The model
+Every camera comes out as an undistorted pinhole (see :mod:`splatk.data.cameras`). The model
 files are checked structurally before pycolmap sees them, so a truncated or corrupt
 ``cameras.bin`` / ``images.bin`` / ``points3D.bin`` gives an :class:`InputError` naming the file
 instead of pycolmap's ``IndexError: Rig with ID ... does not exist`` or ``std::bad_alloc``.
@@ -16,13 +17,16 @@ import pycolmap
 import torch
 
 from ..errors import InputError
-from ._common import (FLOAT32_SAFE, Intrinsics, Undistorter, check_downscale, check_image_file, check_translation,
-                      has_control_characters, image_size, is_inside, make_camera, pinhole, read_image, rigid_or_none,
-                      split_every)
+from ._common import (View, check_downscale, check_image_file, check_translation, has_control_characters, image_size,
+                      is_inside, make_camera, rigid_or_none, split_every)
+from .cameras import FLOAT32_SAFE, Intrinsics, Undistorter, fisheye_intrinsics, pinhole
+from .downscaled import use_downscaled
 from .types import Scene
 
-#: COLMAP camera models splatk undistorts (params order as in COLMAP's models.h)
-SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+#: COLMAP camera models splatk undistorts (params order as in COLMAP's models.h); the fisheye
+#: ones are all OpenCV's equidistant fisheye with fewer or more coefficients
+SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+                    "SIMPLE_FISHEYE", "FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE")
 _MODEL_FILES = ("cameras", "images", "points3D")
 
 
@@ -249,6 +253,17 @@ def _intrinsics(cam: pycolmap.Camera, model_file: Path) -> Intrinsics:
         return Intrinsics(w, h, p[0], p[1], p[2], p[3], tuple(p[4:8]))
     if name == "FULL_OPENCV":  # k1 k2 p1 p2 k3 k4 k5 k6: OpenCV's rational model, same order
         return Intrinsics(w, h, p[0], p[1], p[2], p[3], tuple(p[4:12]))
+    # theta_d = theta (1 + k1 theta^2 + ...): COLMAP's models.h and cv2.fisheye agree
+    if name == "SIMPLE_FISHEYE":
+        return fisheye_intrinsics(w, h, p[0], p[0], p[1], p[2])
+    if name == "FISHEYE":
+        return fisheye_intrinsics(w, h, p[0], p[1], p[2], p[3])
+    if name == "SIMPLE_RADIAL_FISHEYE":
+        return fisheye_intrinsics(w, h, p[0], p[0], p[1], p[2], (p[3],))
+    if name == "RADIAL_FISHEYE":
+        return fisheye_intrinsics(w, h, p[0], p[0], p[1], p[2], (p[3], p[4]))
+    if name == "OPENCV_FISHEYE":
+        return fisheye_intrinsics(w, h, p[0], p[1], p[2], p[3], tuple(p[4:8]))
     raise _unsupported(model_file, name, f"camera {cam.camera_id}")
 
 
@@ -266,8 +281,9 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
 
     Args:
         root: scene folder with ``sparse/0`` (or ``sparse``) holding a binary or text model and
-            ``images/``.
-        downscale: resize images by 1 / downscale (cv2.INTER_AREA) and scale the intrinsics.
+            ``images/`` (Mip-NeRF 360, Tanks & Temples and Deep Blending as 3DGS ships them).
+        downscale: resize images by 1 / downscale (cv2.INTER_AREA) and scale the intrinsics; a
+            whole number N reads ``images_N/`` instead where it exists (:mod:`splatk.data.downscaled`).
         test_every: image i (in name order) is a test view when i % test_every == 0; 0 = no test views.
         load_images: decode the images (else only headers are read, to check sizes).
         background: RGB in [0, 1] that RGBA images are composited on.
@@ -307,7 +323,7 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
                              "remove the duplicate image from the model (or re-run SfM)")
 
     # 1. every input checked before any decoding
-    entries = []
+    views = []
     for im in images:
         path = image_dir / im.name
         if has_control_characters(im.name):
@@ -323,14 +339,23 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
             raise InputError(img_file, f"image {im.name!r} has {what} pose",
                              "re-run SfM or remove the image from the model")
         check_translation(w2c, img_file, f"image {im.name!r}")
-        check_image_file(path, img_file.name)
-        intr = intrinsics[im.camera_id]
-        w, h = image_size(path)
-        if (w, h) != (intr.width, intr.height):
-            raise InputError(path, f"image is {w}x{h} but its camera {im.camera_id} in {cam_file.name} is "
-                             f"{intr.width}x{intr.height}",
-                             "use the images the model was made from (not a resized copy), or rescale the model")
-        entries.append((im.name, intr, w2c, path))
+        views.append(View(im.name, intrinsics[im.camera_id], w2c, path))
+    camera_of = {im.name: im.camera_id for im in images}
+    small_views, remaining = use_downscaled(views, root, downscale)  # images_N/ (Mip-NeRF 360)
+    if remaining == downscale:  # the originals: each is its camera's size
+        for view in views:
+            check_image_file(view.path, img_file.name)
+            w, h = image_size(view.path)
+            intr = view.intr
+            if (w, h) != (intr.width, intr.height):
+                raise InputError(view.path, f"image is {w}x{h} but its camera {camera_of[view.name]} in "
+                                 f"{cam_file.name} is {intr.width}x{intr.height}",
+                                 "use the images the model was made from (a resized copy goes in images_N/ "
+                                 "for --downscale N), or rescale the model")
+    else:
+        for view in small_views:
+            pinhole(view.intr, und, cam_file, f"camera {camera_of[view.name]} at {view.intr.width}x{view.intr.height}")
+    views, downscale = small_views, remaining
 
     if rec.num_points3D():
         pts = sorted(rec.points3D.items())
@@ -344,16 +369,7 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3))
 
     # 2. decode, undistort, downscale
-    cams = []
-    for name, intr, w2c, path in entries:
-        img = None
-        if load_images:
-            img = read_image(path, background)
-            if img.shape[:2] != (intr.height, intr.width):  # header and pixels disagree
-                raise InputError(path, f"decoded image is {img.shape[1]}x{img.shape[0]}, expected "
-                                 f"{intr.width}x{intr.height}", "re-copy the image")
-        cams.append(make_camera(name, intr, w2c, und, downscale, img, path))
-
+    cams = [make_camera(view, und, downscale, load_images, background) for view in views]
     train, test = split_every(cams, test_every)
     return Scene(root=root, train=train, test=test,
                  points=torch.from_numpy(xyz.astype(np.float32)), point_colors=torch.from_numpy(rgb.astype(np.float32)),

@@ -22,6 +22,10 @@ class Camera:
         image: [H, W, 3] uint8 RGB, already undistorted, downscaled and composited on the
             background (None if images were not loaded).
         image_path: where the image came from (for messages).
+        mask: [H, W] bool, True where the pixel counts (the dataset's mask, warped as the image);
+            None: every pixel counts. Masked pixels leave the training loss and the metrics.
+        alpha: [H, W] uint8 alpha channel of an RGBA image (``image`` is already composited on
+            the scene's background), or None; ``--background random`` recomposites with it.
     """
 
     name: str
@@ -34,6 +38,8 @@ class Camera:
     world_to_cam: torch.Tensor
     image: torch.Tensor | None = None
     image_path: Path | None = None
+    mask: torch.Tensor | None = None
+    alpha: torch.Tensor | None = None
 
     @property
     def K(self) -> torch.Tensor:
@@ -54,6 +60,14 @@ class Camera:
         assert self.image is not None, f"image of {self.name} not loaded"
         return self.image.to(device=device, dtype=torch.float32) / 255.0
 
+    def mask_float(self, device: torch.device | str = "cpu") -> torch.Tensor | None:
+        """[H, W, 1] float32, 1 where the pixel counts, 0 where masked; None without a mask."""
+        return None if self.mask is None else self.mask.to(device=device, dtype=torch.float32)[..., None]
+
+    def alpha_float(self, device: torch.device | str = "cpu") -> torch.Tensor | None:
+        """[H, W, 1] float32 alpha in [0, 1]; None for an image without an alpha channel."""
+        return None if self.alpha is None else self.alpha.to(device=device, dtype=torch.float32)[..., None] / 255.0
+
 
 @dataclass
 class Scene:
@@ -66,6 +80,8 @@ class Scene:
         point_colors: [P, 3] float32 in [0, 1].
         background: RGB in [0, 1] that RGBA images were composited on (and renders use).
         source: short description of the loader ("colmap", "transforms").
+        warnings: what the loader read past without using (e.g. dataset fields splatk does not
+            use), one line each, for the caller to print.
     """
 
     root: Path
@@ -75,6 +91,7 @@ class Scene:
     point_colors: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     source: str = ""
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def cameras(self) -> list[Camera]:

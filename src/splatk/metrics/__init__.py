@@ -16,7 +16,8 @@ __all__ = ["psnr", "ssim", "LPIPS", "lpips", "lpips_available", "LPIPSWeightsMis
 METRICS = ("psnr", "ssim", "lpips")
 
 
-def compute_metrics(img: Tensor, ref: Tensor, metrics=METRICS, lpips_net: str = "alex") -> dict:
+def compute_metrics(img: Tensor, ref: Tensor, metrics=METRICS, lpips_net: str = "alex",
+                    mask: Tensor | None = None) -> dict:
     """Evaluation metrics of a render against its reference.
 
     ``img`` is clamped to [0, 1] for every metric (as 3DGS does before evaluating). For a batch
@@ -27,6 +28,9 @@ def compute_metrics(img: Tensor, ref: Tensor, metrics=METRICS, lpips_net: str = 
         ref: same shape, ground truth in [0, 1].
         metrics: any of "psnr", "ssim", "lpips".
         lpips_net: "alex" or "vgg".
+        mask: [H, W, 1] or [B, 1, H, W], 1 where a pixel counts (the dataset's mask; None: all).
+            PSNR and SSIM average over those pixels only; LPIPS, whose network sees whole
+            images, compares both images with the masked pixels set to 0.
 
     Returns:
         ``{name: float}`` for each requested metric. When LPIPS is requested but its weights
@@ -41,10 +45,12 @@ def compute_metrics(img: Tensor, ref: Tensor, metrics=METRICS, lpips_net: str = 
     out: dict = {}
     warnings: list[str] = []
     if "psnr" in metrics:
-        out["psnr"] = float(psnr(img, ref).mean())
+        out["psnr"] = float(psnr(img, ref, mask=mask).mean())
     if "ssim" in metrics:
-        out["ssim"] = float(ssim(img, ref).mean())
+        out["ssim"] = float(ssim(img, ref, mask=mask).mean())
     if "lpips" in metrics:
+        if mask is not None:  # [H, W, 1] / [B, 1, H, W] broadcast over the channels
+            img, ref = img * mask.to(img.dtype), ref * mask.to(ref.dtype)
         try:
             out["lpips"] = float(lpips(img, ref, net=lpips_net).mean())
         except LPIPSWeightsMissing as e:

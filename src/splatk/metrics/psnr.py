@@ -28,7 +28,7 @@ def check_pair(img: Tensor, ref: Tensor) -> None:
         raise ValueError(f"image shape {tuple(img.shape)} differs from reference shape {tuple(ref.shape)}")
 
 
-def psnr(img: Tensor, ref: Tensor) -> Tensor:
+def psnr(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> Tensor:
     """PSNR in dB with data range 1: ``-10 log10(MSE)``.
 
     ``img`` is clamped to [0, 1] first (a render may overshoot); ``ref`` is taken as it is.
@@ -38,6 +38,8 @@ def psnr(img: Tensor, ref: Tensor) -> Tensor:
     Args:
         img: [H, W, 3] or [B, 3, H, W], float in [0, 1].
         ref: same shape as ``img``.
+        mask: [H, W, 1] or [B, 1, H, W], 1 where a pixel counts (None: all): the MSE is over
+            those pixels only.
 
     Returns:
         0-d tensor for an [H, W, 3] input, [B] for a batch. ``inf`` where the images are equal.
@@ -45,6 +47,11 @@ def psnr(img: Tensor, ref: Tensor) -> Tensor:
     check_pair(img, ref)
     x, single = as_bchw(img)
     y, _ = as_bchw(ref)
-    mse = (x.clamp(0.0, 1.0) - y).square().flatten(1).mean(1)
+    err = (x.clamp(0.0, 1.0) - y).square()
+    if mask is None:
+        mse = err.flatten(1).mean(1)
+    else:
+        m = as_bchw(mask)[0].to(err.dtype)
+        mse = (err * m).flatten(1).sum(1) / (m.flatten(1).sum(1) * err.shape[1]).clamp_min(1.0)
     out = -10.0 * torch.log10(mse)
     return out[0] if single else out

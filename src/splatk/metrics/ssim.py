@@ -85,7 +85,7 @@ def ssim_map(img: Tensor, ref: Tensor, window_size: int = 11, sigma: float = 1.5
 
 
 def ssim(img: Tensor, ref: Tensor, window_size: int = 11, sigma: float = 1.5,
-         padding: str = "same") -> Tensor:
+         padding: str = "same", mask: Tensor | None = None) -> Tensor:
     """Mean SSIM of each image (3DGS convention by default, see the module docstring).
 
     Args:
@@ -94,6 +94,9 @@ def ssim(img: Tensor, ref: Tensor, window_size: int = 11, sigma: float = 1.5,
         window_size: odd side of the Gaussian window.
         sigma: standard deviation of the Gaussian window in pixels.
         padding: "same" (3DGS, reported) or "valid" (torchmetrics).
+        mask: [H, W, 1] or [B, 1, H, W], 1 where a pixel counts (None: all): the SSIM map is
+            averaged over those pixels only, after both images are set to 0 where masked (so
+            masked content does not reach the windows of the pixels that count).
 
     Returns:
         0-d tensor for an [H, W, C] input, [B] for a batch (mean over channels and pixels).
@@ -102,5 +105,14 @@ def ssim(img: Tensor, ref: Tensor, window_size: int = 11, sigma: float = 1.5,
     check_pair(img, ref)
     x, single = as_bchw(img)
     y, _ = as_bchw(ref)
-    out = ssim_map(x, y, window_size, sigma, padding).flatten(1).mean(1)
+    if mask is None:
+        out = ssim_map(x, y, window_size, sigma, padding).flatten(1).mean(1)
+    else:
+        m = as_bchw(mask)[0].to(x.dtype)
+        smap = ssim_map(x * m, y * m, window_size, sigma, padding)
+        if padding == "valid":
+            cut = window_size // 2
+            m = m[..., cut:m.shape[-2] - cut, cut:m.shape[-1] - cut]
+        m = m.expand_as(smap)
+        out = (smap * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1.0)
     return out[0] if single else out

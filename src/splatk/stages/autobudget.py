@@ -123,7 +123,7 @@ def render_psnr(model, cams: list[Camera], background, backend: Backend) -> floa
     vals = []
     for cam in cams:
         img = model.render(cam, bg, backend=backend).image
-        vals.append(float(psnr(img.cpu(), cam.image_float())))
+        vals.append(float(psnr(img.cpu(), cam.image_float(), mask=cam.mask_float())))  # masked pixels do not count
     return sum(vals) / len(vals)
 
 

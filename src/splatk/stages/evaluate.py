@@ -43,12 +43,15 @@ def run_eval(
         raise InputError(scene_path or run, "scene folder of this run not found", "pass --scene")
     scene = load_scene(scene_path, downscale=meta.get("downscale", 1.0),
                        test_every=meta.get("test_every", 8),
-                       background=tuple(meta["background"]) if meta.get("background") else None)
+                       background=tuple(meta["background"]) if meta.get("background") else None,
+                       eval_split=meta.get("eval_split", "held-out"))
     cams = scene.test if split == "test" else scene.train
     if not cams:
-        raise InputError(scene_path, f"the scene has no {split} views")
+        fix = ("the run was fitted with --eval-split none; use --split train" if meta.get("eval_split") == "none"
+               else "use --split train")
+        raise InputError(scene_path, f"the scene has no {split} views", fix)
     bg = torch.tensor(scene.background, dtype=torch.float32, device=dev)
-    per_view, times, warnings = [], [], []
+    per_view, times, warnings = [], [], list(scene.warnings)
     render_dir = run / "renders" / split
     if save_renders:
         render_dir.mkdir(parents=True, exist_ok=True)
@@ -61,7 +64,8 @@ def run_eval(
                 torch.cuda.synchronize(dev)
             times.append((time.perf_counter() - t0) * 1000)
             img = out.image.clamp(0, 1)
-            m = compute_metrics(img, cam.image_float(dev), metrics, lpips_net=lpips_net)
+            m = compute_metrics(img, cam.image_float(dev), metrics, lpips_net=lpips_net,
+                                mask=cam.mask_float(dev))
             warnings += m.pop("warnings", [])
             per_view.append({"view": cam.name, **m})
             if save_renders:

@@ -147,7 +147,8 @@ def _run_scene(meta: dict, scene_path: str | Path | None = None):
 
     return load_scene(scene_path or meta["scene"], downscale=meta.get("downscale", 1.0),
                       test_every=meta.get("test_every", 8),
-                      background=tuple(meta["background"]) if meta.get("background") else None)
+                      background=tuple(meta["background"]) if meta.get("background") else None,
+                      eval_split=meta.get("eval_split", "held-out"))
 
 
 def _measurement_scene(meta: dict, scene_path: str | Path | None):

@@ -200,14 +200,16 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 
 def scene_fingerprint(scene) -> str:
-    """A hash of what training reads from the scene: every view's name, size, intrinsics, pose
-    and pixels, and the SfM points."""
+    """A hash of what training reads from the scene: every view's name, size, intrinsics, pose,
+    pixels and mask, and the SfM points."""
     h = hashlib.sha256()
     for cam in scene.train + scene.test:
         h.update(f"{cam.name}|{cam.width}|{cam.height}|{cam.fx}|{cam.fy}|{cam.cx}|{cam.cy}".encode())
         h.update(cam.world_to_cam.contiguous().numpy().tobytes())
         if cam.image is not None:
             h.update(cam.image.contiguous().numpy().tobytes())
+        if cam.mask is not None:  # a scene without masks keeps the fingerprint it had
+            h.update(cam.mask.contiguous().numpy().tobytes())
     h.update(scene.points.contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
 
@@ -217,7 +219,7 @@ def _load_checked_scene(scene_path, cfg: FitConfig):
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every,
-                       background=tuple(cfg.background) if cfg.background else None)
+                       background=tuple(cfg.background) if cfg.background else None, eval_split=cfg.eval_split)
     if cfg.view_stride > 1:
         scene.train = scene.train[::cfg.view_stride]
     if len(scene.train) == 0:
@@ -312,6 +314,7 @@ class FitRun:
             "scene": str(Path(scene_path).resolve()),
             "downscale": cfg.downscale,
             "test_every": cfg.test_every,
+            "eval_split": cfg.eval_split,
             "background": list(scene.background),
             "primitive": cfg.primitive,
             "scene_fingerprint": fingerprint,
@@ -366,6 +369,7 @@ class FitRun:
             "initial_psnr": self.initial_psnr,
             "view_stride": cfg.view_stride,
             "train_views": len(trainer.scene.train),
+            "scene_warnings": list(scene.warnings),  # fields the loader read past (fit prints them too)
         }
         if auto is not None:
             summary["auto_budget"] = auto.report(self.holdout)

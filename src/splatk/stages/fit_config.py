@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from ..data import EVAL_SPLITS
 from ..errors import InputError
 from ..kernels.auto_k import AUTO_K
 from ..machine import memory_bytes
@@ -48,9 +49,13 @@ class FitConfig:
     downscale: float = 1.0
     #: every n-th image is a test view when the dataset names none
     test_every: int = 8
+    #: held-out (the test views above) | all (every view trains and is evaluated) | none (every
+    #: view trains, none is evaluated)
+    eval_split: str = "held-out"
     #: train on every n-th train view only (4: a quarter of them); test views are unaffected
     view_stride: int = 1
-    #: background colour for RGBA data and renders (None: the loader's default)
+    #: background colour for RGBA data and renders (None: the loader's default; `--background
+    #: random` keeps that for evaluation and sets train.random_background)
     background: list | None = None
     #: rasteriser backend: auto | torch | cpu
     backend: str = "auto"
@@ -201,11 +206,13 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
                                "e.g. adc: {grad_threshold: 0.0002}", sources.get("adc"))
         for key, value in nested.items():
             setattr(cfg.train.adc, key, value)
-    if isinstance(opts.get("background"), str):  # the command line's names for the two usual ones
-        named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0]}
+    if isinstance(opts.get("background"), str):  # the command line's names for the usual ones
+        named = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0], "random": None}
         if opts["background"] not in named:
-            raise option_error("background", opts["background"], "is not white, black or three numbers",
+            raise option_error("background", opts["background"], "is not white, black, random or three numbers",
                                "e.g. --background white, or background: [0.5, 0.5, 0.5]", sources.get("background"))
+        if opts["background"] == "random":
+            opts["random_background"] = True
         opts["background"] = named[opts["background"]]
     for key, value in opts.items():
         target = (cfg if key in _FIT_FIELDS else cfg.train.mcmc if key in MCMC_FIELDS
@@ -340,6 +347,8 @@ RULES = [
     ("primitive", "primitive", choice(*PRIMITIVES)),
     ("downscale", "downscale", float_range(1.0, 1e4)),
     ("test_every", "test_every", int_range(1)),
+    ("eval_split", "eval_split", choice(*EVAL_SPLITS)),
+    ("train.random_background", "random_background", BOOL),
     ("view_stride", "view_stride", int_range(1)),
     ("threads", "threads", int_range(0, MAX_THREADS)),
     ("checkpoint_every", "checkpoint_every", int_range(1)),

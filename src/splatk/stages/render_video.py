@@ -139,7 +139,7 @@ def run_scene(meta: dict, scene_path):
         raise InputError(scene_path, "scene folder of this run not found", "pass --scene, or a JSON path file")
     return load_scene(scene_path, downscale=meta.get("downscale", 1.0), test_every=meta.get("test_every", 8),
                       background=tuple(meta["background"]) if meta.get("background") else None,
-                      load_images=False)
+                      load_images=False, eval_split=meta.get("eval_split", "held-out"))
 
 
 def run_background(meta: dict, scene_path) -> tuple[float, float, float]:

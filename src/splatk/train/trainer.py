@@ -23,7 +23,7 @@ from ..data.types import Scene
 from ..models.volumetric import SplatModel
 from .adc import ADCConfig  # importing adc and mcmc registers their strategies
 from .guard import Guard
-from .losses import photometric_loss, regularisers
+from .losses import masked_mse, photometric_loss, regularisers
 from .mcmc import MCMCConfig
 from .optim import PrimitiveAdam
 from .state import load_trainer_state, trainer_state
@@ -85,7 +85,9 @@ class TrainConfig:
     #: 0.065 vs lowest 0.043 while MCMC doubled the model, on both seeds). 0 turns every
     #: collapse check off.
     divergence_factor: float = 2.0
-
+    #: every step renders on a random background colour, and RGBA train images are composited
+    #: on the same colour (3DGS's --random_background), so that transparency is never free
+    random_background: bool = False
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -134,6 +136,7 @@ class Trainer:
         self.guard = Guard(self)
         self.build_optimizers()
         self.targets = [c.image_float(self.device) for c in scene.train]
+        self.masks = [c.mask_float(self.device) for c in scene.train]  # None: every pixel counts
 
     # ---- optimisers and schedules ------------------------------------------------------
     def build_optimizers(self) -> None:
@@ -185,12 +188,15 @@ class Trainer:
         p = self.progress()
         means_lr, _ = self._set_learning_rates(p)
         views = [self._next_view() for _ in range(self.cfg.batch_views)]
-        renders, photo_loss = [], 0.0
+        renders, targets, photo_loss = [], [], 0.0
         for vi in views:
-            out = self.model.render(self.scene.train[vi], self.background, sh_degree=self.sh_degree(),
+            background, target = self._background_and_target(vi)
+            out = self.model.render(self.scene.train[vi], background, sh_degree=self.sh_degree(),
                                     backend=self.backend)
-            photo_loss = photo_loss + photometric_loss(out.image, self.targets[vi], self.backend, self.cfg.lambda_dssim)
+            photo_loss = photo_loss + photometric_loss(out.image, target, self.backend, self.cfg.lambda_dssim,
+                                                       self.masks[vi])
             renders.append(out)
+            targets.append(target)
         if len(views) > 1:
             photo_loss = photo_loss / len(views)
         loss = photo_loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
@@ -214,13 +220,25 @@ class Trainer:
                 event = self._note_growth_held()
                 self.guard.note_step()
         with torch.no_grad():
-            mse = sum(float(((out.image.detach().clamp(0, 1) - self.targets[vi]) ** 2).mean())
-                      for vi, out in zip(views, renders)) / len(views)
+            mse = sum(masked_mse(out.image.detach().clamp(0, 1), target, self.masks[vi])
+                      for vi, out, target in zip(views, renders, targets)) / len(views)
         self.elapsed += time.perf_counter() - t0
         return StepInfo(
             self.it, self.cfg.iters, float(loss.detach()), -10 * math.log10(max(mse, 1e-10)),
             self.model.num_primitives, self.elapsed, self.progress(), event,
         )
+
+    def _background_and_target(self, vi: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The background to render train view ``vi`` on and the image to compare with: the
+        scene's, or (``random_background``) a colour drawn from the view generator (so that
+        checkpoints resume it) with the view's alpha recomposited onto it."""
+        if not self.cfg.random_background:
+            return self.background, self.targets[vi]
+        background = torch.rand(3, generator=self.view_gen).to(self.device)
+        alpha = self.scene.train[vi].alpha_float(self.device)
+        if alpha is None:
+            return background, self.targets[vi]
+        return background, self.targets[vi] + (background - self.background) * (1.0 - alpha)
 
     def _note_growth_held(self) -> str | None:
         """Log the first refine step whose growth MCMC held back (mcmc.MCMCStrategy.step), so a
