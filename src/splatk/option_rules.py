@@ -7,6 +7,7 @@ A rule is a small tuple: ``int_range(lo, hi)``, ``float_range(lo, hi, lo_open)``
 from __future__ import annotations
 
 import math
+import re
 
 from .errors import InputError
 
@@ -70,3 +71,40 @@ def check_value(name: str, value, rule, sources: dict | None = None) -> None:
     if not valid(value, rule):
         raise option_error(name, value, f"must be {describe(rule)}", f"give {describe(rule)}",
                            (sources or {}).get(name))
+
+
+def parse_bytes(value) -> int:
+    """4194304, "4MB", "512KB", "1.5GB" -> bytes (K/M/G are powers of 1024, as footprint_mb)."""
+    if isinstance(value, bool):
+        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
+    if isinstance(value, (int, float)) and math.isfinite(value):
+        return int(value)
+    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([kmg]?)(i?b)?\s*", str(value).lower())
+    if not m:
+        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
+    return int(float(m.group(1)) * {"": 1, "k": 2**10, "m": 2**20, "g": 2**30}[m.group(2)])
+
+
+_DURATION = re.compile(r"(\d+(?:\.\d+)?)\s*([hms]?)")
+
+
+def parse_duration(text) -> float | None:
+    """'10m', '90s', '1h30m', '600' (seconds) -> seconds."""
+    if text is None:
+        return None
+    if isinstance(text, bool):
+        raise ValueError(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
+    if isinstance(text, (int, float)):
+        return float(text)
+    s = str(text).strip().lower().replace(" ", "")
+    if not s:
+        return None
+    total, pos = 0.0, 0
+    for m in _DURATION.finditer(s):
+        if m.start() != pos:
+            break
+        total += float(m.group(1)) * {"h": 3600, "m": 60, "s": 1, "": 1}[m.group(2)]
+        pos = m.end()
+    if pos != len(s):
+        raise ValueError(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
+    return total

@@ -9,7 +9,6 @@ same one-line style as the loaders (``splatk: error: --sh-degree 7: must be 0 to
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -19,7 +18,8 @@ from ..data import EVAL_SPLITS
 from ..errors import InputError
 from ..kernels.auto_k import AUTO_K
 from ..machine import memory_bytes
-from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error, valid
+from ..option_rules import (BOOL, check_value, choice, float_range, int_range, option_error, parse_bytes,
+                            parse_duration, valid)
 from ..train.adc import ADCConfig
 from ..train.strategies import STRATEGIES
 from ..train.trainer import MCMC_FIELDS, TrainConfig
@@ -102,43 +102,6 @@ EXTRA_OPTIONS = ("k", "weights", "kernel_weights", "budget_bytes", "kernel_optio
 
 
 # ---- values as a user writes them ---------------------------------------------------------------
-def parse_bytes(value) -> int:
-    """4194304, "4MB", "512KB", "1.5GB" -> bytes (K/M/G are powers of 1024, as footprint_mb)."""
-    if isinstance(value, bool):
-        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
-    if isinstance(value, (int, float)) and math.isfinite(value):
-        return int(value)
-    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([kmg]?)(i?b)?\s*", str(value).lower())
-    if not m:
-        raise ValueError(f"cannot read byte size {value!r} (examples: 4194304, 4MB, 512KB)")
-    return int(float(m.group(1)) * {"": 1, "k": 2**10, "m": 2**20, "g": 2**30}[m.group(2)])
-
-
-_DURATION = re.compile(r"(\d+(?:\.\d+)?)\s*([hms]?)")
-
-
-def parse_duration(text) -> float | None:
-    """'10m', '90s', '1h30m', '600' (seconds) -> seconds."""
-    if text is None:
-        return None
-    if isinstance(text, bool):
-        raise ValueError(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
-    if isinstance(text, (int, float)):
-        return float(text)
-    s = str(text).strip().lower().replace(" ", "")
-    if not s:
-        return None
-    total, pos = 0.0, 0
-    for m in _DURATION.finditer(s):
-        if m.start() != pos:
-            break
-        total += float(m.group(1)) * {"h": 3600, "m": 60, "s": 1, "": 1}[m.group(2)]
-        pos = m.end()
-    if pos != len(s):
-        raise ValueError(f"cannot read duration {text!r} (examples: 10m, 90s, 1h30m)")
-    return total
-
-
 # ---- the one translator -------------------------------------------------------------------------
 def fit_config_from_options(options: dict, sources: dict | None = None,
                             base: FitConfig | None = None) -> tuple[FitConfig, dict]:
