@@ -27,20 +27,22 @@ def process_options(opts: dict, sources: dict, new_run: bool) -> None:
                                "started", "drop --nproc under torchrun: the launcher sets the processes",
                                sources.get("nproc"))
         opts["nproc"] = world.size
+        sources["nproc"] = "launcher's WORLD_SIZE"
     if new_run and "nproc" in opts and "batch_views" not in opts and valid(opts["nproc"], int_range(1, 256)):
         opts["batch_views"] = opts["nproc"]
+        sources["batch_views"] = "default for --nproc: one view per process"
 
 
 def check_processes(cfg, sources: dict) -> None:
-    """A data-parallel run gives every process at least one view per step, and uses only the
-    density control whose decisions agree on every rank from the summed gradients."""
+    """A data-parallel run gives every process at least one view per step; --budget auto's
+    selection runs in one process."""
     if cfg.nproc > cfg.train.batch_views:
         raise option_error("nproc", cfg.nproc, f"more processes than views per step (--batch-views "
                            f"{cfg.train.batch_views})", f"give --batch-views {cfg.nproc} or more, or fewer processes",
                            sources.get("nproc"))
-    if cfg.train.strategy != "mcmc" or cfg.auto_budget is not None:
-        raise option_error("nproc", cfg.nproc, "several processes train with a fixed --budget and --strategy mcmc",
-                           "use --nproc 1 with --strategy adc or --budget auto", sources.get("nproc"))
+    if cfg.auto_budget is not None:
+        raise option_error("nproc", cfg.nproc, "several processes train with a fixed --budget",
+                           "use --nproc 1 with --budget auto, or give a number", sources.get("nproc"))
 
 
 class Start:
@@ -48,11 +50,14 @@ class Start:
 
     def __init__(self, world: World):
         self.world, self.sent = world, False
+        #: the settings as checked, before the fit resolves any (``init: auto`` -> sfm or random),
+        #: which is how every other rank has them
+        self.settings: dict | None = None
 
-    def send(self, scene_path, settings: dict, fingerprint: str, state: dict) -> None:
+    def send(self, scene_path, fingerprint: str, state: dict) -> None:
         """Send rank 0's start; InputError on every rank when another rank found a problem."""
         self.sent = True
-        self.world.broadcast({"scene": str(scene_path), "settings": settings, "fingerprint": fingerprint,
+        self.world.broadcast({"scene": str(scene_path), "settings": self.settings, "fingerprint": fingerprint,
                               "state": state})
         agree(self.world, None)
 

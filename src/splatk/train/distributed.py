@@ -106,6 +106,27 @@ class World:
             offset += n
         return flat.numel() * flat.element_size()
 
+    def observed(self, strategy, before: dict, n: int, device: torch.device) -> None:
+        """After ``strategy.observe`` of this rank's views: its per-primitive statistics as if it
+        had observed every rank's (``before``: :func:`statistics_before` of this step)."""
+        names = strategy.statistics
+        if not self.distributed or not names:
+            return
+        if not self.any(any(getattr(strategy, k) is not None for k in names), device):
+            return
+        for name, how in names.items():
+            now = getattr(strategy, name)
+            now = torch.zeros(n, device=device) if now is None else now
+            if how == "sum":
+                prev = before.get(name)
+                base = prev if prev is not None and prev.shape == now.shape else torch.zeros_like(now)
+                delta = now - base  # this rank's views' share; the sum over ranks is the batch's
+                _collective(dist.all_reduce, delta)
+                now = base + delta
+            else:
+                _collective(dist.all_reduce, now, op=dist.ReduceOp.MAX)
+            setattr(strategy, name, now)
+
     def broadcast(self, obj=None):
         """Rank 0's ``obj`` (any picklable value: settings, a trainer's state) on every rank."""
         if not self.distributed:
@@ -131,9 +152,9 @@ def _comm_device(device: torch.device | None) -> torch.device:
     return device if device is not None and device.type == "cuda" else torch.device("cpu")
 
 
-def _collective(op: Callable, *args, **kwargs):
+def _collective(fn: Callable, *args, **kwargs):
     try:
-        return op(*args, **kwargs)
+        return fn(*args, **kwargs)
     except (RuntimeError, ValueError) as e:  # DistBackendError, DistNetworkError: a peer is gone
         raise WorkerLost(_short(e)) from None
 
@@ -141,6 +162,12 @@ def _collective(op: Callable, *args, **kwargs):
 def _short(e: Exception) -> str:
     lines = [x.strip() for x in str(e).splitlines() if x.strip()]
     return (lines[0] if lines else type(e).__name__)[:200]
+
+
+def statistics_before(strategy) -> dict:
+    """Copies of ``strategy``'s per-primitive statistics before a step's observations."""
+    return {name: None if getattr(strategy, name) is None else getattr(strategy, name).clone()
+            for name in strategy.statistics}
 
 
 def my_share(views: Sequence[int], world: World) -> list[int]:

@@ -22,7 +22,7 @@ from ..backends import Backend
 from ..data.types import Scene
 from ..models.volumetric import SplatModel
 from .adc import ADCConfig  # importing adc and mcmc registers their strategies
-from .distributed import SINGLE, World, my_share
+from .distributed import SINGLE, World, my_share, statistics_before
 from .guard import Guard
 from .losses import photometric_loss, regularisers
 from .mcmc import MCMCConfig
@@ -223,9 +223,11 @@ class Trainer:
             if self.net_opt is not None:
                 self.net_opt.zero_grad(set_to_none=True)
             loss.backward()
+            before = statistics_before(self.strategy) if self.world.distributed else {}
             for vi, out in zip(mine, renders):
                 self.strategy.observe(self.it, self.model, out, self.scene.train[vi])
             if self.world.distributed:
+                self.world.observed(self.strategy, before, self.model.num_primitives, self.device)
                 self.sent_bytes = self.world.sum_gradients(
                     list(self.model.prims.values()) + list(self.model.kernel.parameters()))
             self.opt.step()
