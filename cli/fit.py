@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import traceback
 from pathlib import Path
 
 import click
@@ -134,8 +135,14 @@ def _launch(nproc: int, job: dict) -> None:
 
 
 def _worker(job: dict) -> None:
-    """One rank of `fit --nproc N` (a launcher's worker process)."""
-    _fit_here(**job)
+    """One rank of `fit --nproc N` (a launcher's worker process). A failure that is no input
+    error keeps its traceback: the launcher's own report of it is silenced."""
+    try:
+        _fit_here(**job)
+    except Exception:  # noqa: BLE001 - a bug: show where, then stop this rank
+        traceback.print_exc()
+        sys.stderr.flush()
+        os._exit(1)
 
 
 def _fit_here(scene, out, cfg, sources, overwrite, resume, resume_options, quiet, log_every) -> None:
@@ -186,7 +193,7 @@ def _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options,
                                            loss=0.0, psnr=0.0, num=info["model"].num_primitives, rate=0.0)
 
     def on_step(info):
-        if info.event:
+        if info.event and main:
             console.print(f"[yellow]{info.event}")
         if progress is not None and (info.it % 10 == 0 or info.it == info.iters):
             rate = info.it / info.elapsed if info.elapsed > 0 else 0.0

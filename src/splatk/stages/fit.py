@@ -295,6 +295,8 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
     """The fit itself, once the settings are checked: ``state`` is the checkpoint to resume;
     ``start`` sends rank 0's start to the other ranks of a job."""
     resume = state is not None
+    if start is not None:
+        start.settings = cfg.to_dict()
     scene = _load_checked_scene(scene_path, cfg)
     fingerprint = scene_fingerprint(scene)
     if resume:
@@ -371,7 +373,7 @@ class FitRun:
               should_stop) -> FitResult:
         cfg, scene, auto = self.cfg, self.scene, self.auto
         if self.start is not None:
-            self.start.send(scene_path, cfg.to_dict(), fingerprint, self.trainer.state_dict())
+            self.start.send(scene_path, fingerprint, self.trainer.state_dict())
         if self.world.distributed:  # every rank stops at the same iteration
             asked = should_stop
             should_stop = lambda: self.world.any(bool(asked and asked()))  # noqa: E731
@@ -437,6 +439,9 @@ class FitRun:
         }
         if auto is not None:
             summary["auto_budget"] = auto.report(self.holdout)
+        if self.world.distributed:
+            summary["processes"] = self.world.size
+            summary["gradient_bytes_per_step"] = trainer.sent_bytes  # the last step's all-reduce
         folder.write_summary(summary)
         return FitResult(out, summary)
 
