@@ -119,19 +119,19 @@ EXIT_WORKER_LOST = 4
 
 
 def _launch(nproc: int, job: dict) -> None:
-    """``--nproc N``: N workers on this machine, each running the fit as one rank; the first
-    failed worker's exit code is this command's (each worker prints its own error)."""
+    """``--nproc N``: N workers on this machine, each running the fit as one rank. Each worker
+    prints its own error; a worker killed by a signal could not, so it is named here. The exit
+    code is rank 0's, else the first failed worker's (128 + N for signal N)."""
     failed = launch_local(nproc, _worker, job)
-    if failed:
-        rank = min(failed)
-        code = failed[rank]
-        if code < 0:  # killed by a signal: it could print nothing itself
-            name = signal.Signals(-code).name if -code in signal.Signals._value2member_map_ else str(-code)
-            click.echo(f"splatk: error: worker {rank} stopped ({name}); the last checkpoint in "
-                       f"{job['out'] / 'checkpoints'} is intact: continue with `splatk fit --resume --out "
+    for rank, code in sorted(failed.items()):
+        if code < 0:
+            name = signal.Signals(-code).name if -code in signal.Signals._value2member_map_ else f"signal {-code}"
+            click.echo(f"splatk: error: worker {rank} was killed ({name}); the last checkpoint in "
+                       f"{Path(job['out']) / 'checkpoints'} is intact: continue with `splatk fit --resume --out "
                        f"{job['out']}`", err=True)
-            code = 128 - code
-        sys.exit(code)
+    if failed:
+        code = failed[min(failed)]
+        sys.exit(128 - code if code < 0 else code)
 
 
 def _worker(job: dict) -> None:

@@ -117,6 +117,42 @@ def test_killed_worker_stops_the_job_and_one_process_resumes(scene, tmp_path):
     assert "changed on resume" in (run / "config.yaml").read_text()  # nproc 2 -> 1, recorded
 
 
+def worker_pids(launcher: int) -> list[int]:
+    """The spawned workers among a launcher's child processes (not multiprocessing's helper)."""
+    pids = []
+    for task in Path(f"/proc/{launcher}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+            if b"spawn_main" in cmdline and b"resource_tracker" not in cmdline:
+                pids.append(int(pid))
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the workers through /proc")
+def test_killed_worker_of_nproc_stops_the_launcher(scene, tmp_path):
+    run = tmp_path / "run"
+    proc = subprocess.Popen(splatk("fit", scene, "--out", run, "--iters", "2000", "--checkpoint-every", "20",
+                                   "--nproc", "2", *FIT), env=env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.time()
+        while not (run / "checkpoints" / "last.pt").is_file():
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.time() - t0 < 300, "no checkpoint after 300 s"
+            time.sleep(0.05)
+        workers = worker_pids(proc.pid)
+        assert len(workers) == 2, workers
+        os.kill(workers[1], signal.SIGKILL)
+        err = proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode != 0
+    assert "was killed (SIGKILL)" in err and "another worker of the job stopped" in err, err
+    assert "Traceback" not in err, err
+    torch.load(run / "checkpoints" / "last.pt", weights_only=True)  # intact
+
+
 def test_ranks_with_different_settings_are_an_input_error(scene, tmp_path):
     port = free_port()
     procs = [subprocess.Popen(splatk("fit", scene, "--out", tmp_path / "run", "--iters", "20", *FIT,

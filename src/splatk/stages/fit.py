@@ -166,7 +166,7 @@ def run_fit(
     if cfg is not None:
         cfg.device = cfg.train.device = local_device(cfg.device, world)
     if not world.main:
-        result = _follow(world, out, cfg, resume, on_step, should_stop)
+        result = _follow(world, out, cfg, resume, on_start, on_step, should_stop)
     else:
         start = Start(world)
         try:
@@ -208,7 +208,8 @@ def _run_fit(scene_path, out: Path, cfg, overwrite, resume, config_sources, on_s
                 overwrite=overwrite, world=world, start=start)
 
 
-def _follow(world: World, out: Path, cfg: FitConfig | None, resume: bool, on_step, should_stop) -> FitResult:
+def _follow(world: World, out: Path, cfg: FitConfig | None, resume: bool, on_start, on_step,
+            should_stop) -> FitResult:
     """A rank other than 0: check this process's settings and scene against rank 0's start,
     then train beside it from rank 0's state; nothing is written."""
     start = receive(world)
@@ -230,6 +231,9 @@ def _follow(world: World, out: Path, cfg: FitConfig | None, resume: bool, on_ste
         problem = f"rank {world.rank}: {e.message()}"
     del start
     agree(world, problem)
+    if on_start:
+        on_start({"scene": trainer.scene, "model": trainer.model, "iters": run_cfg.train.iters,
+                  "start_it": trainer.it, "backend": run_cfg.train.backend, "config": run_cfg})
     trainer.run(on_step, lambda: world.any(bool(should_stop and should_stop())))
     return FitResult(Path(out), {"iterations": trainer.it, "rank": world.rank})
 

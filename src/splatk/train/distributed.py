@@ -18,10 +18,10 @@ collective that fails (a peer died, or stayed silent for :data:`TIMEOUT_S`) rais
 """
 from __future__ import annotations
 
-import logging
 import os
+import signal
 import socket
-import uuid
+import time
 from dataclasses import dataclass
 from datetime import timedelta
 from typing import Callable, Sequence
@@ -192,6 +192,8 @@ def join(world: World) -> None:
     if missing:
         raise WorkerLost(f"the launcher's environment lacks {', '.join(missing)}")
     backend = "cpu:gloo,cuda:nccl" if torch.cuda.is_available() and dist.is_nccl_available() else "gloo"
+    if torch.cuda.is_available():  # NCCL's object collectives use the current device: this rank's
+        torch.cuda.set_device(world.local_rank % torch.cuda.device_count())
     try:
         dist.init_process_group(backend, timeout=timedelta(seconds=TIMEOUT_S))
     except (RuntimeError, ValueError) as e:
@@ -216,22 +218,57 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def launch_local(nproc: int, entrypoint: Callable, *args) -> dict[int, int]:
-    """Run ``entrypoint(*args)`` in ``nproc`` worker processes on this machine (torch's elastic
-    launcher, rendezvous on 127.0.0.1); returns {rank: exit code} of the workers that failed
-    (empty when all succeeded). When one worker fails the launcher stops the others."""
-    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
-    from torch.distributed.launcher.api import LaunchConfig, elastic_launch
+#: after a worker fails, how long the others get to notice it themselves (their next collective
+#: fails at once when the peer is gone) before they are sent SIGTERM, and then SIGKILL
+STOP_GRACE_S = 30.0
 
-    # the launcher's own log lines (a table per failed worker) would bury the workers' one-line
-    # errors, which each worker prints itself
-    for name in ("torch.distributed.elastic", "torch.multiprocessing", "torch.distributed.launcher"):
-        logging.getLogger(name).setLevel(logging.CRITICAL)
-    config = LaunchConfig(min_nodes=1, max_nodes=1, nproc_per_node=nproc, run_id=uuid.uuid4().hex,
-                          rdzv_backend="c10d", rdzv_endpoint=f"127.0.0.1:{free_port()}", max_restarts=0,
-                          monitor_interval=0.1, start_method="spawn")
+
+def launch_local(nproc: int, entrypoint: Callable, *args) -> dict[int, int]:
+    """Run ``entrypoint(*args)`` in ``nproc`` worker processes on this machine (torch's
+    multiprocessing, spawned, each with the environment torchrun would give it and a rendezvous
+    on 127.0.0.1); returns {rank: exit code} of the workers that did not exit 0 (negative: killed
+    by that signal).
+
+    Ctrl-C reaches the workers from the terminal, and each stops at a step boundary as a
+    one-process fit does; this process only waits for them. A SIGTERM sent to this process is
+    passed on to them. When a worker fails, the others stop on their own when their next
+    collective finds it gone; any still running STOP_GRACE_S later get SIGTERM, then SIGKILL.
+    """
+    import multiprocessing.connection
+
+    import torch.multiprocessing as mp
+
+    ctx = mp.start_processes(_rank_main, args=(nproc, free_port(), entrypoint, args), nprocs=nproc, join=False,
+                             start_method="spawn")
+    procs = ctx.processes
+
+    def forward(signum, frame):
+        for proc in procs:
+            if proc.is_alive():
+                os.kill(proc.pid, signum)
+
+    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    old_term = signal.signal(signal.SIGTERM, forward)
+    stopped = (0, 128 + signal.SIGINT, 128 + signal.SIGTERM)  # done, or stopped on request
+    failed_at, sent = None, None
     try:
-        elastic_launch(config, entrypoint)(*args)
-    except ChildFailedError as e:
-        return {int(rank): int(f.exitcode) for rank, f in e.failures.items()}
-    return {}
+        while any(proc.is_alive() for proc in procs):
+            multiprocessing.connection.wait([proc.sentinel for proc in procs if proc.is_alive()], timeout=1.0)
+            if failed_at is None and any(proc.exitcode not in (None, *stopped) for proc in procs):
+                failed_at = time.monotonic()
+            if failed_at is not None and time.monotonic() - failed_at > STOP_GRACE_S:
+                sent = signal.SIGKILL if sent is not None else signal.SIGTERM
+                failed_at = time.monotonic()
+                forward(sent, None)
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+        signal.signal(signal.SIGTERM, old_term)
+    for proc in procs:
+        proc.join()
+    return {rank: proc.exitcode for rank, proc in enumerate(procs) if proc.exitcode != 0}
+
+
+def _rank_main(rank: int, nproc: int, port: int, entrypoint: Callable, args: tuple) -> None:
+    os.environ.update({"RANK": str(rank), "LOCAL_RANK": str(rank), "WORLD_SIZE": str(nproc),
+                       "LOCAL_WORLD_SIZE": str(nproc), "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)})
+    entrypoint(*args)
