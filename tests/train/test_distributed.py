@@ -55,6 +55,17 @@ def prims(run: Path) -> dict:
     return torch.load(run / "model.pt", weights_only=True)["prims"]
 
 
+def assert_same_training(a: dict, b: dict) -> None:
+    """Float tolerance: Adam (eps 1e-15) turns rounding-level gradient differences of near-still
+    primitives into steps of up to one learning rate, so a few entries differ by ~1e-3; the mean
+    difference shows that the runs are the same run."""
+    assert a["means"].shape == b["means"].shape
+    for name in b:
+        diff = (a[name] - b[name]).abs()
+        assert torch.allclose(a[name], b[name], rtol=1e-3, atol=5e-3), (name, float(diff.max()))
+        assert float(diff.mean()) < 1e-4, (name, float(diff.mean()))
+
+
 @pytest.mark.parametrize("strategy", ["mcmc", "adc"])
 def test_two_processes_train_the_one_process_batch(scene, tmp_path, strategy):
     """MCMC: relocation, growth and noise drawn alike on both ranks; ADC (densifying every 5
@@ -68,18 +79,35 @@ def test_two_processes_train_the_one_process_batch(scene, tmp_path, strategy):
     ddp, one = prims(runs["ddp"]), prims(runs["one"])
     initial = 300 // 4  # random init: a quarter of the budget
     assert ddp["means"].shape[0] == one["means"].shape[0] != initial  # the same density control
-    for name in one:
-        diff = (ddp[name] - one[name]).abs()
-        # Adam (eps 1e-15) turns rounding-level gradient differences of near-still primitives
-        # into steps of up to one learning rate, so a few entries differ by ~1e-3; the mean
-        # shows that the runs are the same run
-        assert torch.allclose(ddp[name], one[name], rtol=1e-3, atol=5e-3), (name, float(diff.max()))
-        assert float(diff.mean()) < 1e-4, (name, float(diff.mean()))
+    assert_same_training(ddp, one)
     configs = [(runs[n] / "config.yaml").read_text() for n in ("ddp", "one")]
     assert "nproc: 2" in configs[0] and "batch_views: 2" in configs[0] and "batch_views: 2" in configs[1]
     # only rank 0 wrote: one log, every line once
     log = [json.loads(x)["it"] for x in (runs["ddp"] / "train_log.jsonl").read_text().splitlines()]
     assert log == sorted(set(log))
+
+
+def test_a_one_process_checkpoint_resumes_on_two_processes(scene, tmp_path):
+    """The checkpoint is the whole state: a one-process run stopped at iteration 30 and resumed
+    with `--nproc 2` ends where the one-process run ends."""
+    from splatk.stages.fit import run_fit
+    from splatk.stages.fit_config import fit_config_from_options
+
+    options = {"budget": 300, "init": "random", "seed": 1, "threads": 1, "backend": "torch", "sh_degree": 1,
+               "iters": 50, "batch_views": 2}
+    cfg, _ = fit_config_from_options(options)
+    run, one = tmp_path / "run", tmp_path / "one"
+    seen = []
+    run_fit(scene, run, cfg, on_step=lambda info: seen.append(info.it), should_stop=lambda: seen[-1] >= 30)
+    assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["trainer"]["it"] == 30
+    res = subprocess.run(splatk("fit", "--resume", "--out", run, "--iters", "50", "--nproc", "2", "-q"), env=env(),
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    res = subprocess.run(splatk("fit", scene, "--out", one, "--iters", "50", "--batch-views", "2", *FIT), env=env(),
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert json.loads((run / "fit.json").read_text())["processes"] == 2
+    assert_same_training(prims(run), prims(one))
 
 
 def test_killed_worker_stops_the_job_and_one_process_resumes(scene, tmp_path):
