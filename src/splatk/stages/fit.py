@@ -222,7 +222,8 @@ def _follow(world: World, out: Path, cfg: FitConfig | None, resume: bool, on_sta
             run_cfg.threads, run_cfg.device, run_cfg.train.device = cfg.threads, cfg.device, cfg.device
         scene = _load_checked_scene(start["scene"], run_cfg)
         if problem is None and scene_fingerprint(scene) != start["fingerprint"]:
-            problem = f"the scene {start['scene']} on rank {world.rank} differs from rank 0's (images, cameras or points)"
+            problem = (f"the scene {start['scene']} on rank {world.rank} differs from rank 0's (images, cameras "
+                       "or points)")
         if problem is None:
             torch.manual_seed(run_cfg.train.seed)
             trainer = Trainer(scene, build_model(scene, run_cfg), run_cfg.train, world=world)
