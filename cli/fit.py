@@ -1,13 +1,18 @@
 """`splatk fit SCENE --out RUN`: reconstruct a scene from posed photos."""
 from __future__ import annotations
 
+import os
 import signal
+import sys
+import traceback
 from pathlib import Path
 
 import click
 
 from splatk.backends import backend_names
 from splatk.data import EVAL_SPLITS
+from splatk.errors import InputError, TrainingStalled
+from splatk.train.distributed import WorkerLost, launch_local, launched_world
 from splatk.kernels import kernel_names
 from splatk.colors import COLOR_MODELS
 from splatk.train.strategies import STRATEGIES
@@ -62,6 +67,10 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
               help="Initial primitives: SfM points, random, or auto (SfM points when the scene has them). [default: auto]")
 @click.option("--seed", type=int, help="Random seed. [default: 0]")
 @click.option("--threads", type=int, help="CPU threads (0: all). [default: 0]")
+@click.option("--nproc", type=int,
+              help="Training processes on this machine (data parallel, torch.distributed: gloo on CPU, NCCL "
+                   "on CUDA): each renders its share of a step's --batch-views views (default: one each). "
+                   "Under torchrun, the launcher's processes instead. [default: 1]")
 @click.option("--checkpoint-every", type=int, help="Checkpoint interval in iterations. [default: 1000]")
 @click.option("--scale-schedules/--no-scale-schedules", default=None,
               help="Runs shorter than 30k iterations shrink the 30k step schedules (refine start and "
@@ -114,12 +123,80 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
         changed = {k: v for k, v in notes.get("scaled_schedules", {}).items() if k != "factor"}
         for key, value in changed.items():
             sources[key] = f"scaled to the run length ({cfg.train.iters} of 30000 iterations): {value}"
+    job = dict(scene=scene, out=out, cfg=cfg, sources=sources, overwrite=overwrite, resume=resume,
+               resume_options=resume_options, quiet=quiet, log_every=log_every)
+    nproc = values.get("nproc") or 1
+    if nproc > 1 and not launched_world().distributed:
+        _launch(nproc, job)
+    else:
+        _fit_here(**job)
+
+
+#: exit code of a worker whose job lost another worker (2: bad input, 3: training stalled)
+EXIT_WORKER_LOST = 4
+
+
+def _launch(nproc: int, job: dict) -> None:
+    """``--nproc N``: N workers on this machine, each running the fit as one rank. Each worker
+    prints its own error; a worker killed by a signal could not, so it is named here. The exit
+    code is rank 0's, else the first failed worker's (128 + N for signal N)."""
+    failed = launch_local(nproc, _worker, job)
+    for rank, code in sorted(failed.items()):
+        if code < 0:
+            name = signal.Signals(-code).name if -code in signal.Signals._value2member_map_ else f"signal {-code}"
+            click.echo(f"splatk: error: worker {rank} was killed ({name}); the last checkpoint in "
+                       f"{Path(job['out']) / 'checkpoints'} is intact: continue with `splatk fit --resume --out "
+                       f"{job['out']}`", err=True)
+    if failed:
+        code = failed[min(failed)]
+        sys.exit(128 - code if code < 0 else code)
+
+
+def _worker(job: dict) -> None:
+    """One rank of `fit --nproc N` (a launcher's worker process). A failure that is no input
+    error keeps its traceback: the launcher's own report of it is silenced."""
+    try:
+        _fit_here(**job)
+    except Exception:  # noqa: BLE001 - a bug: show where, then stop this rank
+        traceback.print_exc()
+        sys.stderr.flush()
+        os._exit(1)
+
+
+def _fit_here(scene, out, cfg, sources, overwrite, resume, resume_options, quiet, log_every) -> None:
+    """The fit in this process: alone, or as one rank of a job (rank 0 alone prints progress)."""
+    world = launched_world()
+    try:
+        _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options, quiet or not world.main,
+                        log_every, world.main)
+        return
+    except WorkerLost as e:
+        code, message = EXIT_WORKER_LOST, (
+            f"worker {world.rank}: another worker of the job stopped ({e}); the last checkpoint in "
+            f"{Path(out) / 'checkpoints'} is intact: continue with `splatk fit --resume --out {out}`")
+    except (InputError, TrainingStalled) as e:
+        if not world.distributed:
+            raise
+        code, message = 2 if isinstance(e, InputError) else 3, e.message()
+    click.echo(f"splatk: error: {message}", err=True)
+    if not world.distributed:
+        sys.exit(code)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # a rank whose peers have gone can abort in the collective library's teardown at
+    # interpreter exit (SIGABRT instead of this exit code): leave at once
+    os._exit(code)
+
+
+def _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options, quiet, log_every, main) -> None:
     console = stderr_console()
     progress = None if quiet else training_progress(console, log_every)
     task = {}
 
     def on_start(info):
         task["started"] = True
+        if not main:
+            return
         s, run_cfg = info["scene"], info["config"]
         for w in s.warnings:  # what the loader read past without using
             console.print(f"[yellow]warning: {w}")
@@ -136,7 +213,7 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
                                            loss=0.0, psnr=0.0, num=info["model"].num_primitives, rate=0.0)
 
     def on_step(info):
-        if info.event:
+        if info.event and main:
             console.print(f"[yellow]{info.event}")
         if progress is not None and (info.it % 10 == 0 or info.it == info.iters):
             rate = info.it / info.elapsed if info.elapsed > 0 else 0.0
@@ -166,7 +243,7 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
     except KeyboardInterrupt:
         if progress is not None:
             progress.stop()
-        if task.get("started"):
+        if task.get("started") and main:
             console.print(f"[yellow]interrupted; checkpoint saved, continue with: splatk fit --resume --out {out}")
         raise SystemExit(130)
     finally:
@@ -175,6 +252,10 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
         if progress is not None:
             progress.stop()
     run = result.path
+    if not main:
+        if stop["signal"] is not None:
+            raise SystemExit(128 + stop["signal"])
+        return
     if task.get("auto_budget"):
         rep = result.summary.get("auto_budget") or {}
         stages = ", ".join(f"{st['budget']:,}: {st['holdout_psnr']:.2f} dB" for st in rep.get("stages", []))

@@ -30,16 +30,18 @@ from ..models.io import model_spec
 from ..models.planar import PlanarModel
 from ..models.volumetric import SplatModel
 from ..outputs import OutputDir, check_output_dir
+from ..train.distributed import SINGLE, World, join, launched_world, leave, local_device
 from ..train.trainer import StepInfo, Trainer
 from .autobudget import AutoBudget, render_psnr, split_holdout
 from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, color_options as _color_options,
                          fit_config_from_options)
+from .fit_ranks import Start, agree, receive, settings_mismatch
 from .run_folder import RunFolder, clean_resume_leftovers, record_resume_changes, write_config
 
 #: the marker kind of a run folder (``splatk.outputs``)
 RUN_KIND = "fit run"
 #: settings ``fit --resume`` may change; every other one given on resume must equal the run's
-RESUME_CHANGEABLE = ("iters", "time_budget", "checkpoint_every", "threads", "backend", "device")
+RESUME_CHANGEABLE = ("iters", "time_budget", "checkpoint_every", "threads", "backend", "device", "nproc")
 
 
 @dataclass
@@ -149,17 +151,54 @@ def run_fit(
 
     Raises :class:`~splatk.errors.TrainingStalled` when training cannot get past a point (see
     :class:`~splatk.train.trainer.Trainer`); the checkpoint then holds the last healthy state.
+
+    In a process that a launcher started as one rank of a data-parallel job (``RANK``,
+    ``WORLD_SIZE``, ... in the environment: torchrun, or ``splatk fit --nproc``), the fit joins
+    the job: rank 0 does all of the above and every other rank trains beside it from rank 0's
+    start (:mod:`splatk.stages.fit_ranks`), writing nothing. A rank that loses its peers
+    raises :class:`~splatk.train.distributed.WorkerLost`.
     """
     out = Path(out)
+    world = launched_world()
+    if not world.distributed:
+        return _run_fit(scene_path, out, cfg, overwrite, resume, config_sources, on_start, on_step, should_stop,
+                        resume_options, SINGLE, None)
+    join(world)
+    if cfg is not None:
+        cfg.device = cfg.train.device = local_device(cfg.device, world)
+    if not world.main:
+        result = _follow(world, out, cfg, resume, on_start, on_step, should_stop)
+    else:
+        start = Start(world)
+        try:
+            result = _run_fit(scene_path, out, cfg, overwrite, resume, config_sources, on_start, on_step,
+                              should_stop, resume_options, world, start)
+        except InputError as e:
+            start.fail(e.message())
+            raise
+    # only after a fit that every rank finished: tearing the group down while a peer is gone
+    # can hang or abort, and a process that failed exits anyway
+    leave()
+    return result
+
+
+def _run_fit(scene_path, out: Path, cfg, overwrite, resume, config_sources, on_start, on_step, should_stop,
+             resume_options, world: World, start: Start | None) -> FitResult:
     if resume:
         with OutputDir(out, RUN_KIND, keep=True):
             saved_scene, cfg, state = load_resume_state(out)
             if scene_path is not None and Path(scene_path).resolve() != Path(saved_scene).resolve():
                 raise InputError(scene_path, f"is not the scene of the run in {out} ({saved_scene})",
                                  "resume without SCENE, or start a new run with another --out")
-            cfg, changes = _apply_resume_options(out, cfg, resume_options or {})
+            given = dict(resume_options or {})
+            if cfg.nproc != world.size:  # the run goes on with the processes it has now
+                given.setdefault("nproc", world.size)
+            cfg, changes = _apply_resume_options(out, cfg, given)
             check_fit_config(cfg, f"run's {out / 'config.yaml'}")
-            return _fit(saved_scene, out, cfg, state, changes, config_sources, on_start, on_step, should_stop)
+            if world.distributed:
+                cfg.device = cfg.train.device = local_device(cfg.device, world)
+            return _fit(saved_scene, out, cfg, state, changes, config_sources, on_start, on_step, should_stop,
+                        world=world, start=start)
     if cfg is None:
         cfg = FitConfig()
     check_fit_config(cfg, config_sources)
@@ -167,7 +206,38 @@ def run_fit(
         raise InputError(None, "no scene given", "pass the scene folder (or --resume to continue a run)")
     check_output_dir(out, RUN_KIND, overwrite, inputs=[scene_path])  # refuse before any work
     return _fit(scene_path, out, cfg, None, {}, config_sources, on_start, on_step, should_stop,
-                overwrite=overwrite)
+                overwrite=overwrite, world=world, start=start)
+
+
+def _follow(world: World, out: Path, cfg: FitConfig | None, resume: bool, on_start, on_step,
+            should_stop) -> FitResult:
+    """A rank other than 0: check this process's settings and scene against rank 0's start,
+    then train beside it from rank 0's state; nothing is written."""
+    start = receive(world)
+    problem, trainer = None, None
+    try:
+        run_cfg = FitConfig.from_dict(start["settings"])
+        if cfg is not None:
+            if not resume:
+                problem = settings_mismatch(cfg.to_dict(), start["settings"], world.rank)
+            run_cfg.threads, run_cfg.device, run_cfg.train.device = cfg.threads, cfg.device, cfg.device
+        scene = _load_checked_scene(start["scene"], run_cfg)
+        if problem is None and scene_fingerprint(scene) != start["fingerprint"]:
+            problem = (f"the scene {start['scene']} on rank {world.rank} differs from rank 0's (images, cameras "
+                       "or points)")
+        if problem is None:
+            torch.manual_seed(run_cfg.train.seed)
+            trainer = Trainer(scene, build_model(scene, run_cfg), run_cfg.train, world=world)
+            trainer.load_state_dict(start["state"])
+    except InputError as e:
+        problem = f"rank {world.rank}: {e.message()}"
+    del start
+    agree(world, problem)
+    if on_start:
+        on_start({"scene": trainer.scene, "model": trainer.model, "iters": run_cfg.train.iters,
+                  "start_it": trainer.it, "backend": run_cfg.train.backend, "config": run_cfg})
+    trainer.run(on_step, lambda: world.any(bool(should_stop and should_stop())))
+    return FitResult(Path(out), {"iterations": trainer.it, "rank": world.rank})
 
 
 def _apply_resume_options(out: Path, saved: FitConfig, given: dict) -> tuple[FitConfig, dict]:
@@ -228,9 +298,13 @@ def _load_checked_scene(scene_path, cfg: FitConfig):
 
 
 def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_changes: dict,
-         config_sources, on_start, on_step, should_stop, overwrite: bool = False) -> FitResult:
-    """The fit itself, once the settings are checked: ``state`` is the checkpoint to resume."""
+         config_sources, on_start, on_step, should_stop, overwrite: bool = False, world: World = SINGLE,
+         start: Start | None = None) -> FitResult:
+    """The fit itself, once the settings are checked: ``state`` is the checkpoint to resume;
+    ``start`` sends rank 0's start to the other ranks of a job."""
     resume = state is not None
+    if start is not None:
+        start.settings = cfg.to_dict()
     scene = _load_checked_scene(scene_path, cfg)
     fingerprint = scene_fingerprint(scene)
     if resume:
@@ -253,6 +327,7 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
             raise InputError(scene_path, str(e), "use a number for --budget") from None
         auto = AutoBudget(cfg.auto_budget, cfg.train.budget, cfg.train.mcmc.refine_stop)
     fit = FitRun(scene, cfg, auto, holdout, all_train)
+    fit.world, fit.start = world, start
     if resume and auto is not None and state.get("auto_budget") is not None:
         auto.load_state_dict(state["auto_budget"])
     if auto is not None and auto.refitting:  # resuming the refit: a fixed run at the chosen budget
@@ -262,7 +337,7 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
     else:
         torch.manual_seed(cfg.train.seed)  # model construction may draw (e.g. spherical-Beta lobes)
         model = build_model(scene, cfg, budget=auto.start_budget if auto is not None else None)
-        trainer = Trainer(scene, model, cfg.train)
+        trainer = Trainer(scene, model, cfg.train, world=world)
     fit.trainer = trainer
     if resume:
         trainer.load_state_dict(state["trainer"])
@@ -290,6 +365,8 @@ class FitRun:
         self.trainer: Trainer | None = None
         self.initial_psnr: float | None = None
         self.folder: RunFolder | None = None
+        self.world: World = SINGLE
+        self.start: Start | None = None
 
     def checkpoint(self, tr: Trainer) -> None:
         self.folder.checkpoint(tr.it, {"trainer": tr.state_dict(), "initial_psnr": self.initial_psnr,
@@ -309,6 +386,11 @@ class FitRun:
     def train(self, scene_path, out: Path, fingerprint: str, resume: bool, on_start, on_step,
               should_stop) -> FitResult:
         cfg, scene, auto = self.cfg, self.scene, self.auto
+        if self.start is not None:
+            self.start.send(scene_path, fingerprint, self.trainer.state_dict())
+        if self.world.distributed:  # every rank stops at the same iteration
+            asked = should_stop
+            should_stop = lambda: self.world.any(bool(asked and asked()))  # noqa: E731
         spec = model_spec(self.trainer.model, cfg.kernel_options, _color_options(cfg))
         meta = {
             "scene": str(Path(scene_path).resolve()),
@@ -373,6 +455,9 @@ class FitRun:
         }
         if auto is not None:
             summary["auto_budget"] = auto.report(self.holdout)
+        if self.world.distributed:
+            summary["processes"] = self.world.size
+            summary["gradient_bytes_per_step"] = trainer.sent_bytes  # the last step's all-reduce
         folder.write_summary(summary)
         return FitResult(out, summary)
 

@@ -24,6 +24,7 @@ from ..train.adc import ADCConfig
 from ..train.strategies import STRATEGIES
 from ..train.trainer import MCMC_FIELDS, TrainConfig
 from .autobudget import AutoBudgetConfig
+from .fit_ranks import check_processes, process_options
 from .run_length import run_fraction, scale_to_run_length
 
 PRIMITIVES = ("volumetric", "planar")
@@ -63,6 +64,9 @@ class FitConfig:
     device: str = "cpu"
     #: torch threads (0: all cores)
     threads: int = 0
+    #: training processes (data parallel: each renders its share of the --batch-views views of
+    #: a step); under torchrun, the launcher's world size
+    nproc: int = 1
     #: checkpoint every n iterations (and on Ctrl-C)
     checkpoint_every: int = 1000
     #: runs shorter than 30k iterations: scale the step-count schedules tuned for 30k to the
@@ -127,6 +131,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         raise InputError(None, f"unknown fit setting {unknown[0]!r}" + (f" (from the {src})" if src else ""),
                          "see `splatk fit --help` for the settings")
     opts.pop("name", None)
+    process_options(opts, sources, new_run=base is None)
     kernel_options = dict(cfg.kernel_options)
     if isinstance(opts.get("kernel_options"), dict):
         kernel_options.update(opts.pop("kernel_options"))
@@ -314,6 +319,7 @@ RULES = [
     ("train.random_background", "random_background", BOOL),
     ("view_stride", "view_stride", int_range(1)),
     ("threads", "threads", int_range(0, MAX_THREADS)),
+    ("nproc", "nproc", int_range(1, 256)),
     ("checkpoint_every", "checkpoint_every", int_range(1)),
     ("train.iters", "iters", int_range(1, 10**9)),
     ("train.time_budget", "time_budget", float_range(0.0, None, lo_open=True)),
@@ -453,6 +459,8 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
         if cap is not None and not valid(cap, int_range(1, max_budget(cfg))):
             raise option_error("adc.cap_max", cap, f"must be a whole number from 1 to {max_budget(cfg):,} (memory)",
                                "give a smaller cap", sources.get("adc"))
+    if cfg.nproc > 1:
+        check_processes(cfg, sources)
     if cfg.auto_budget is not None:
         ab = cfg.auto_budget
         if not valid(ab.holdout_every, int_range(2)):

@@ -67,6 +67,7 @@ def screen_radii(conics: torch.Tensor, support_sigmas: float, gaussian_sigmas: f
 @register_strategy
 class ADCStrategy(Strategy):
     name = "adc"
+    statistics = {"grad_sum": "sum", "seen": "sum", "max_radii": "max"}
 
     @classmethod
     def from_train_config(cls, config, extent: float) -> "ADCStrategy":

@@ -13,6 +13,10 @@ class Strategy:
     """What the trainer asks of a density-control strategy each iteration."""
 
     name = "base"
+    #: per-primitive statistics that :meth:`observe` accumulates ([N] tensor attributes, None
+    #: until the first), by name, and how the ranks of a data-parallel run combine what each
+    #: observed of its own views: "sum" or "max" (splatk.train.distributed)
+    statistics: dict[str, str] = {}
 
     @classmethod
     def from_train_config(cls, config, extent: float) -> "Strategy":

@@ -22,6 +22,7 @@ from ..backends import Backend
 from ..data.types import Scene
 from ..models.volumetric import SplatModel
 from .adc import ADCConfig  # importing adc and mcmc registers their strategies
+from .distributed import SINGLE, World, my_share, statistics_before
 from .guard import Guard
 from .losses import masked_mse, photometric_loss, regularisers
 from .mcmc import MCMCConfig
@@ -115,11 +116,19 @@ class StepInfo:
 class Trainer:
     """Trains ``model`` on ``scene``. ``backend``: the ops every step uses; default
     ``backends.get(config.backend, config.device)``, resolved here once (a benchmark may pass
-    its own object)."""
+    its own object). ``world``: this process's rank in a data-parallel job
+    (:mod:`splatk.train.distributed`); it renders its share of each step's views."""
 
-    def __init__(self, scene: Scene, model: SplatModel, config: TrainConfig, backend: Backend | None = None):
+    def __init__(self, scene: Scene, model: SplatModel, config: TrainConfig, backend: Backend | None = None,
+                 world: World = SINGLE):
+        if world.size > config.batch_views:
+            raise ValueError(f"{world.size} processes need at least as many views per step (batch_views "
+                             f"{config.batch_views})")
         self.scene = scene
         self.cfg = config
+        self.world = world
+        #: bytes this rank sent into the last step's gradient all-reduce (0 in one process)
+        self.sent_bytes = 0
         self.device = torch.device(config.device)
         self.backend = backends.get(config.backend, self.device) if backend is None else backend
         self.model = model.to(self.device)
@@ -188,9 +197,13 @@ class Trainer:
         p = self.progress()
         means_lr, _ = self._set_learning_rates(p)
         views = [self._next_view() for _ in range(self.cfg.batch_views)]
+        mine = my_share(views, self.world) if self.world.distributed else views
+        # every rank draws the batch's backgrounds in the batch's order, so a random background
+        # stays the one-process run's whatever share a rank renders
+        drawn = [self._background_and_target(vi) for vi in views]
         renders, targets, photo_loss = [], [], 0.0
-        for vi in views:
-            background, target = self._background_and_target(vi)
+        for vi in mine:
+            background, target = drawn[views.index(vi)]
             out = self.model.render(self.scene.train[vi], background, sh_degree=self.sh_degree(),
                                     backend=self.backend)
             photo_loss = photo_loss + photometric_loss(out.image, target, self.backend, self.cfg.lambda_dssim,
@@ -199,32 +212,49 @@ class Trainer:
             targets.append(target)
         if len(views) > 1:
             photo_loss = photo_loss / len(views)
-        loss = photo_loss + regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
-        if not torch.isfinite(loss):
+        reg = regularisers(self.model, self.cfg.opacity_reg, self.cfg.scale_reg)
+        with torch.no_grad():
+            mse = sum(masked_mse(out.image.detach().clamp(0, 1), target, self.masks[vi])
+                      for vi, out, target in zip(mine, renders, targets))
+        if self.world.distributed:
+            # the summed gradients are the one-process batch's: each rank adds 1/N of the
+            # regularisers; the loss every rank judges (NaN, rollbacks) is the whole batch's
+            loss = photo_loss + reg / self.world.size
+            photo_sum, mse = self.world.sum_values([photo_loss.detach(), mse], self.device)
+            loss_value = photo_sum + float(reg.detach())
+        else:
+            loss = photo_loss + reg
+            loss_value = float(loss.detach())
+        if not math.isfinite(loss_value):
             event = self.guard.after_nan_loss()
         else:
             self.opt.zero_grad()
             if self.net_opt is not None:
                 self.net_opt.zero_grad(set_to_none=True)
             loss.backward()
-            for vi, out in zip(views, renders):
+            before = statistics_before(self.strategy) if self.world.distributed else {}
+            for vi, out in zip(mine, renders):
                 self.strategy.observe(self.it, self.model, out, self.scene.train[vi])
+            if self.world.distributed:
+                self.world.observed(self.strategy, before, self.model.num_primitives, self.device)
+                self.sent_bytes = self.world.sum_gradients(
+                    list(self.model.prims.values()) + list(self.model.kernel.parameters()))
             self.opt.step()
             if self.net_opt is not None and any(g["lr"] > 0 for g in self.net_opt.param_groups):
                 self.net_opt.step()
             with torch.no_grad():
                 self.model.prims["quats"].data = torch.nn.functional.normalize(self.model.prims["quats"].data, dim=-1)
-            event = self.guard.after_step(float(loss.detach()))
+            event = self.guard.after_step(loss_value)
             if event is None:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
                 event = self._note_growth_held()
                 self.guard.note_step()
-        with torch.no_grad():
-            mse = sum(masked_mse(out.image.detach().clamp(0, 1), target, self.masks[vi])
-                      for vi, out, target in zip(views, renders, targets)) / len(views)
-        self.elapsed += time.perf_counter() - t0
+        mse = mse / len(views)
+        step_seconds = time.perf_counter() - t0
+        # one clock for every rank: progress-based schedules and time budgets must agree
+        self.elapsed += self.world.rank0_value(step_seconds, self.device) if self.world.distributed else step_seconds
         return StepInfo(
-            self.it, self.cfg.iters, float(loss.detach()), -10 * math.log10(max(mse, 1e-10)),
+            self.it, self.cfg.iters, loss_value, -10 * math.log10(max(mse, 1e-10)),
             self.model.num_primitives, self.elapsed, self.progress(), event,
         )
 
