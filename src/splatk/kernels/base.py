@@ -50,6 +50,9 @@ class Kernel(nn.Module):
     primitive: str = "volumetric"
     #: support of the profile in units of the projected sigma (bounding ellipse at r = 1)
     support_sigmas: float = 3.0
+    #: the trainer's scale regulariser charges this kernel's scales times this
+    #: (see LearnedKernel's ``scale_reg_weight``)
+    scale_reg_weight: float = 1.0
     #: whether :meth:`profile` reads the :class:`ViewContext` (a backend's projection may skip
     #: computing camera-space centres and rotations for kernels that do not)
     needs_view: bool = False

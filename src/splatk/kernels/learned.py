@@ -62,6 +62,9 @@ LOG_ANGLE_SHIFT = 5.0
 LOG_ANGLE_SCALE = 2.5
 #: the decoded profile's value at the support edge (r = 1) is at most this (see ``edge_max``)
 EDGE_MAX = 0.25
+#: the scale regulariser's weight on this kernel's scales: its 1-sigma support over the
+#: Gaussian's 3 (see ``scale_reg_weight``)
+SCALE_REG_WEIGHT = 1.0 / 3.0
 #: options that fix the networks' shapes; a weights file must match them
 ARCH_OPTIONS = ("latent_dim", "latent2d_dim", "proj_width", "dec_width", "proj_inputs")
 
@@ -177,6 +180,13 @@ class LearnedKernel(Kernel):
             geometry gets no gradient but the scale regulariser's: the scales shrink, the
             networks widen the profile further, and the loss climbs
             (docs/decisions/0101-learned-kernel-unfreeze.md). 1 leaves Phi_dec's value as is.
+        scale_reg_weight: the scale regulariser (``scale_reg`` x mean scale, from DBS / 3DGS-MCMC)
+            charges this kernel's scales times this. Its support ends at 1 sigma where the
+            Gaussian's ends at 3, so for the same footprint on screen its scales are a third of a
+            Gaussian's; the default 1/3 charges the footprint as the Gaussian's regulariser does.
+            At 1 the regulariser pulls the learned kernel's footprints three times as hard, and
+            on forward-facing scenes the scales shrink until the loss rises
+            (docs/decisions/0102-learned-kernel-scale-regulariser-and-auto-k.md).
         proj_precision: arithmetic of Phi_proj's matrix products: "fp32", "bf16" (CPU autocast;
             weights, inputs and z2d stay float32, Phi_dec stays float32), or "auto": bf16 for
             renders without gradients (eval, export) on a CPU with native bf16 units, fp32
@@ -212,6 +222,7 @@ class LearnedKernel(Kernel):
         weights: str | None = "default",
         proj_precision: str = "auto",
         edge_max: float = EDGE_MAX,
+        scale_reg_weight: float = SCALE_REG_WEIGHT,
     ):
         super().__init__()
         k = int(k)
@@ -233,6 +244,9 @@ class LearnedKernel(Kernel):
         self.edge_max = float(edge_max)
         if not 0.0 < self.edge_max <= 1.0:
             raise ValueError(f"learned kernel: edge_max must be in (0, 1], got {edge_max}")
+        self.scale_reg_weight = float(scale_reg_weight)
+        if not (self.scale_reg_weight >= 0.0 and math.isfinite(self.scale_reg_weight)):
+            raise ValueError(f"learned kernel: scale_reg_weight must be a number >= 0, got {scale_reg_weight}")
         w = "none" if weights is None else str(weights)
         self.weights = w
         pretrained = w.lower() != "none"
@@ -279,6 +293,7 @@ class LearnedKernel(Kernel):
             "weights": self.weights,
             "proj_precision": self.proj_precision,
             "edge_max": self.edge_max,
+            "scale_reg_weight": self.scale_reg_weight,
         }
 
     def arch_options(self) -> dict:

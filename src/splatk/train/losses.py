@@ -35,6 +35,6 @@ def regularisers(model, opacity_reg: float, scale_reg: float) -> torch.Tensor:
     loss = torch.zeros((), device=model.prims["means"].device)
     if opacity_reg > 0:
         loss = loss + opacity_reg * model.opacities.abs().mean()
-    if scale_reg > 0:
-        loss = loss + scale_reg * model.scales.abs().mean()
+    if scale_reg > 0:  # times the kernel's weight: its footprint per unit scale (kernels.base)
+        loss = loss + scale_reg * model.kernel.scale_reg_weight * model.scales.abs().mean()
     return loss
