@@ -57,7 +57,8 @@ PRETRAIN_SAMPLES = 1024
 #: the fit that explores, and the weight of the coefficients' L1 term (peers.md Sec. 7.3).
 #: GabSplat's code sets the bank's top frequency per image (128 and 1024 radians per sigma for
 #: its large images); a wave of f radians per sigma aliases past f = pi sigma_px, so on splats of
-#: 2 to 6 px the bank stops at 15 (with 128, fits picked aliased waves near 100: noise)
+#: 2 to 6 px the bank stops at 15 (with 128, fits picked aliased waves near 100: noise;
+#: docs/decisions/0012-image-gabsplat.md)
 GABSPLAT_BANK = 16
 GABSPLAT_FREQ_STEP = 1.0
 GABSPLAT_TOP = 2
@@ -408,8 +409,7 @@ class GabSplatKernel2D(ImageKernel):
 
     def init_params(self, model, n, latent_dim, generator):
         # frequency 0 at weight 1, the rest 0: the splat starts as the Gaussian, as every kernel here
-        # (GabSplat draws 0.1 N(0, 1) for all; on kodim05, 8 KiB, 300 iterations: 20.37 dB
-        # against 20.61 from the Gaussian)
+        # (GabSplat draws 0.1 N(0, 1) for all, which did worse: docs/decisions/0012-image-gabsplat.md)
         coeffs = torch.zeros(n, 2, GABSPLAT_BANK)
         coeffs[..., 0] = 1.0
         model.wave_coeffs = nn.Parameter(coeffs)
