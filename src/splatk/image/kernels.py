@@ -47,7 +47,7 @@ LATENT_DIM = 2
 TURN_STEPS = 256
 DEC_WIDTH = 8
 GABOR_WAVES = 2
-#: the paper's planar latent size ("a 10D latent code", paper Sec. 3.5)
+#: the paper's planar latent size ("a 10D latent code", paper Sec. 4.4)
 PAPER_LATENT_DIM = 10
 #: Adam steps and samples of the paper kernel's pretraining on the Gaussian surfel (paper Sec. 4.5)
 PRETRAIN_STEPS = 300
