@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from splatk.image.fit import ImageFitConfig
-from splatk.image.kernels import KERNELS
+from splatk.image.fit import MODES, ImageFitConfig
+from splatk.image.kernels import KERNEL_CHOICES
 from splatk.image.model import BACKENDS
 from splatk.stages.image_fit import run_image_fit
 
@@ -18,8 +18,13 @@ _D = ImageFitConfig()
 
 @click.command("image")
 @click.argument("photo", type=click.Path(path_type=Path))
-@click.option("--kernel", type=click.Choice(KERNELS), default=_D.kernel, show_default=True,
-              help="2D kernel: gaussian (GaussianImage), gabor (Gabor splatting), learned (planar decoder).")
+@click.option("--kernel", type=click.Choice(KERNEL_CHOICES), default=_D.kernel, show_default=True,
+              help="2D kernel: gaussian (GaussianImage), gabor (two cosine waves per axis), gabsplat (GabSplat, "
+                   "the paper's Gabor baseline), learned (planar decoder).")
+@click.option("--mode", type=click.Choice(MODES), default=_D.mode, show_default=True,
+              help="tuned: splatk's learned kernel (shape palette, turn, Gaussian envelope; the shared decoder paid "
+                   "from the budget). paper: the paper's planar learned kernel (10-float latent per splat, sigmoid "
+                   "decoder) with the budget counting the primitives only, as the paper does.")
 @click.option("--budget-bytes", default=str(_D.budget_bytes), show_default=True,
               help="Bytes for all parameters (per splat float32; a learned splat's turn and palette index "
                    "take a byte each), the shared decoder and palette included at float16 (24576, 24KB, "
@@ -53,7 +58,7 @@ _D = ImageFitConfig()
 @click.option("--log-every", type=click.FloatRange(min=0), default=DEFAULT_LOG_EVERY, show_default=True,
               metavar="SECONDS", help="When stderr is not a terminal: print a plain progress line this often "
               "instead of the bar.")
-def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
+def command(photo, kernel, mode, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
             exact, backend, device, no_lpips, overwrite, quiet, log_every):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
@@ -70,7 +75,7 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
         budget_bytes = parse_bytes(budget_bytes)
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--budget-bytes") from None
-    cfg = ImageFitConfig(kernel=kernel, budget_bytes=budget_bytes, iters=iters, seed=seed,
+    cfg = ImageFitConfig(kernel=kernel, mode=mode, budget_bytes=budget_bytes, iters=iters, seed=seed,
                          downscale=downscale, grid=grid, exact=exact, latent_dim=latent_dim,
                          shapes=shapes, backend=backend, device=device, lpips=not no_lpips)
     console = stderr_console()
@@ -94,9 +99,12 @@ def command(photo, kernel, budget_bytes, out, iters, seed, threads, downscale, g
             progress.stop()
     m = json.loads(path.read_text())
     lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
-    console.print(f"{kernel}: {m['num_primitives']} primitives, {m['bytes']} bytes"
+    paid = m["counted_bytes"] == m["bytes"]
+    console.print(f"{m['kernel']}: {m['num_primitives']} primitives, {m['bytes']} bytes"
                   + (f" (of which {m['network_bytes']} the shared decoder"
-                     + (f" and its {m['shapes']}-shape palette" if m["shapes"] else "") + ")"
+                     + (f" and its {m['shapes']}-shape palette" if m["shapes"] else "")
+                     + ("" if paid else ", not counted: the budget paid for the primitives' "
+                        f"{m['counted_bytes']}") + ")"
                      if m["network_bytes"] else "")
                   + f", PSNR {m['psnr']:.2f}, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['seconds']:.1f} s")
     click.echo(f"wrote {path.parent / m['file']} ({m['file_bytes']} bytes: {m['bytes']} and a header)")

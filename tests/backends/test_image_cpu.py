@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from splatk.backends.image_cpu import render_image_splats_cpu
-from splatk.image.kernels import GABOR_WAVES, KERNELS
+from splatk.image.kernels import GABOR_WAVES, IMAGE_KERNELS, KERNELS
 from splatk.image.model import Splats2D
 
 
@@ -47,7 +47,10 @@ def _render_and_grads(m: Splats2D, backend: str):
     return img.detach().clone(), {n: p.grad.clone() for n, p in m.named_parameters()}
 
 
-@pytest.mark.parametrize("kernel", KERNELS)
+NATIVE = [k for k in KERNELS if IMAGE_KERNELS[k].has_native]
+
+
+@pytest.mark.parametrize("kernel", NATIVE)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_native_matches_torch(kernel, dtype):
     _native_or_skip()
@@ -71,10 +74,22 @@ def test_auto_picks_native_on_cpu():
     assert m.uses_native()
     m.backend = "torch"
     assert not m.uses_native()
+    m = _splats("learned")
     m.exact = True
-    m.kernel = "learned"
     m.backend = "cpu"
     with pytest.raises(ValueError, match="exact"):
+        m.uses_native()
+
+
+@pytest.mark.parametrize("kernel", [k for k in KERNELS if k not in NATIVE])
+def test_kernels_without_native_op_draw_with_torch(kernel):
+    """auto draws them with the torch path; an explicit cpu backend is refused naming the pair."""
+    _native_or_skip()
+    m = Splats2D(kernel, 5, 12, 16, generator=torch.Generator().manual_seed(0))
+    m.backend = "auto"
+    assert not m.uses_native()
+    m.backend = "cpu"
+    with pytest.raises(ValueError, match=f"{kernel} kernel has no cpu backend"):
         m.uses_native()
 
 

@@ -15,7 +15,7 @@ from splatk.errors import InputError
 from splatk.image.bytes import (SHARED_BYTES_PER_FLOAT, SHARED_DTYPE, bytes_per_primitive, floats_per_primitive,
                                 num_primitives)
 from splatk.image.fit import ImageFitConfig, fit_image
-from splatk.image.kernels import KERNELS, LATENT_DIM, PlanarDecoder, decoder_floats
+from splatk.image.kernels import GABSPLAT_TOP, KERNELS, LATENT_DIM, PlanarDecoder, decoder_floats
 from splatk.image.model import Splats2D, kmeans
 from tests.scenes import synthetic_photo as _synthetic
 
@@ -114,16 +114,22 @@ def test_render_table_matches_exact_mode(seed):
 def test_bytes_within_budget(kernel, latent_dim, budget):
     n = num_primitives(kernel, budget, latent_dim)
     m = Splats2D(kernel, max(n, 1), 8, 8, latent_dim=latent_dim)
-    # every per-primitive parameter is counted: floats at 4 bytes, the learned kernel's turn at one
-    per_prim = sum(p.numel() for name, p in m.named_parameters()
+    # every per-primitive parameter is counted: floats at 4 bytes, the learned kernel's turn at one;
+    # GabSplat trains a coefficient per bank frequency and stores the top K per axis, each with a
+    # one-byte bank index
+    stored = {"wave_coeffs": 2 * GABSPLAT_TOP * m.n}
+    per_prim = sum(stored.get(name, p.numel()) for name, p in m.named_parameters()
                    if not name.startswith("decoder.") and name != "turn") // m.n
     assert per_prim == floats_per_primitive(kernel, latent_dim)
-    per_bytes = 4 * per_prim + (1 if kernel == "learned" else 0)
+    per_bytes = 4 * per_prim + {"learned": 1, "gabsplat": 2 * GABSPLAT_TOP}.get(kernel, 0)
     assert per_bytes == bytes_per_primitive(kernel, latent_dim)
-    # the shared decoder is paid from the same budget, at float16
-    net = SHARED_BYTES_PER_FLOAT * decoder_floats(latent_dim) if kernel == "learned" else 0
-    assert n * per_bytes + net <= budget < (n + 1) * per_bytes + net
+    # the shared decoder is stored at float16 and paid from the same budget (but for the paper's
+    # kernel, whose budget counts the primitives only)
+    net = SHARED_BYTES_PER_FLOAT * decoder_floats(latent_dim) if kernel.startswith("learned") else 0
+    paid = net if kernel == "learned" else 0
+    assert n * per_bytes + paid <= budget < (n + 1) * per_bytes + paid
     assert m.describe_bytes()["bytes"] == m.n * per_bytes + net
+    assert m.describe_bytes()["counted_bytes"] == m.n * per_bytes + paid
     if kernel == "learned":
         assert per_prim == 8 + latent_dim
         assert decoder_floats(latent_dim) == sum(p.numel() for p in PlanarDecoder(latent_dim).parameters())

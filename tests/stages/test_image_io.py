@@ -15,7 +15,7 @@ from splatk.image.fit import ImageFitConfig, fit_image
 from tests.scenes import synthetic_photo as _synthetic
 
 
-CASES = [("gaussian", 0), ("gabor", 0), ("learned", 0), ("learned", 8)]
+CASES = [("gaussian", 0), ("gabor", 0), ("gabsplat", 0), ("learned", 0), ("learned", 8), ("learned-paper", 0)]
 
 
 @pytest.mark.parametrize("kernel,shapes", CASES)

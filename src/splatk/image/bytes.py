@@ -51,8 +51,16 @@ def network_bytes(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) ->
     return SHARED_BYTES_PER_FLOAT * image_kernel(kernel).shared_floats(latent_dim, shapes)
 
 
+def counted_network_bytes(kernel: str, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
+    """The part of :func:`network_bytes` the budget pays for: all of it, except for the paper's
+    kernel, whose comparison counts the primitives only ("a similar memory footprint for
+    primitives", paper Sec. 5)."""
+    return network_bytes(kernel, latent_dim, shapes) if image_kernel(kernel).pays_shared else 0
+
+
 def num_primitives(kernel: str, budget_bytes: int, latent_dim: int = LATENT_DIM, shapes: int = 0) -> int:
     """Primitives that fit in ``budget_bytes`` once the shared network is paid for (``splatk
-    bench``'s rule too: budget = (budget_bytes - network_bytes) // bytes_per_primitive)."""
-    spare = int(budget_bytes) - network_bytes(kernel, latent_dim, shapes)
+    bench``'s rule too: budget = (budget_bytes - network_bytes) // bytes_per_primitive; the
+    paper's kernel: budget_bytes // bytes_per_primitive)."""
+    spare = int(budget_bytes) - counted_network_bytes(kernel, latent_dim, shapes)
     return max(0, spare) // bytes_per_primitive(kernel, latent_dim, shapes)

@@ -4,14 +4,19 @@
 payload, so the size a run reports can be checked with ``ls -l``, and the image the run measured
 is the image this file redraws (:func:`load_splats2d`, ``splatk image-decode``). Little-endian:
 
-    header   magic "SPLK2D", version u8, kernel u8 (0 gaussian, 1 gabor, 2 learned), n u32,
+    header   magic "SPLK2D", version u8, kernel u8 (0 gaussian, 1 gabor, 2 learned, 3 learned-paper,
+             4 gabsplat), n u32,
              height u16, width u16, grid u8, latent_dim u8, palette entries u16 (0: none)
     per splat, column by column (the parameters as trained, so a reload is exact):
-             xy_raw [n, 2] f32, chol [n, 3] f32, colors [n, 3] f32
+             xy_raw [n, 2] f32, chol [n, 3] f32 (gabsplat: sigmas [n, 2] f32, angle [n] f32),
+             colors [n, 3] f32
              gabor:   amplitudes [n, 2, K] f32, frequencies [n, 2, K] f32
+             gabsplat: the top K coefficients [n, 2, K] f32, their bank indices [n, 2, K] u8
+             learned-paper: latents [n, L] f32
              learned: turn [n] u8 (steps of 2 pi / 256), then palette index [n] u8 with a
                       palette, else latents [n, L] f32
-    shared   learned: decoder weights and biases (layer 1, 2, 3) f16, palette [K, L] f16
+    shared   learned, learned-paper: decoder weights and biases (layer 1, 2, 3) f16;
+             learned: palette [K, L] f16
 """
 from __future__ import annotations
 
@@ -26,7 +31,7 @@ import torch
 from ..errors import InputError
 from ..models.io import atomic_write
 from .bytes import MAX_SHAPES, SHARED_DTYPE, bytes_per_primitive, network_bytes
-from .kernels import GABOR_WAVES, KERNELS, TURN_STEPS
+from .kernels import GABOR_WAVES, GABSPLAT_BANK, GABSPLAT_TOP, KERNELS, TURN_STEPS, GabSplatKernel2D, image_kernel
 from .model import Splats2D
 
 MAGIC = b"SPLK2D"
@@ -52,24 +57,32 @@ def encode_splats2d(model: Splats2D) -> bytes:
     """The file's bytes for ``model`` (a learned model's shared part must already be float16-exact:
     :meth:`Splats2D.round_shared`, which the fit calls)."""
     if (max(model.height, model.width) > 0xFFFF or model.height * model.width > MAX_PIXELS
-            or (model.kernel == "learned" and model.grid > MAX_GRID) or model.latent_dim > 0xFF):
+            or (model.kernel2d.decoded and model.grid > MAX_GRID) or model.latent_dim > 0xFF):
         raise ValueError(f"image size (at most {MAX_PIXELS} pixels), grid (at most {MAX_GRID}) or latent "
                          "size too large for the splat file")
     palette = model.palette if model.kernel == "learned" and model.palette is not None else None
     header = _HEADER.pack(MAGIC, VERSION, KERNELS.index(model.kernel), model.n, model.height, model.width,
-                          model.grid, model.latent_dim if model.kernel == "learned" else 0,
+                          model.grid, model.latent_dim if model.kernel2d.decoded else 0,
                           0 if palette is None else palette.shape[0])
 
     def f32(t):
         return t.detach().cpu().numpy().astype(_F32).tobytes()
 
-    parts = [header, f32(model.xy_raw), f32(model.chol), f32(model.colors)]
+    if model.kernel == "gabsplat":
+        parts = [header, f32(model.xy_raw), f32(model.sigmas), f32(model.angle), f32(model.colors)]
+        top = GabSplatKernel2D.top(model)
+        parts += [f32(model.wave_coeffs.gather(2, top)), top.cpu().to(torch.uint8).numpy().tobytes()]
+    else:
+        parts = [header, f32(model.xy_raw), f32(model.chol), f32(model.colors)]
     if model.kernel == "gabor":
         parts += [f32(model.gabor_amps), f32(model.gabor_freqs)]
     if model.kernel == "learned":
         parts.append(model.turn_steps().cpu().to(torch.uint8).numpy().tobytes())
         parts.append(model.shape_index.cpu().to(torch.uint8).numpy().tobytes() if palette is not None
                      else f32(model.latents))
+    if model.kernel == "learned-paper":
+        parts.append(f32(model.latents))
+    if model.kernel2d.decoded:
         shared = _decoder_tensors(model) + ([palette] if palette is not None else [])
         for t in shared:
             half = t.detach().cpu().to(SHARED_DTYPE)
@@ -78,6 +91,12 @@ def encode_splats2d(model: Splats2D) -> bytes:
                                  "(Splats2D.round_shared)")
             parts.append(half.numpy().astype(_F16).tobytes())
     return b"".join(parts)
+
+
+def _repeats(top: torch.Tensor) -> bool:
+    """Whether an axis names one bank index twice ([n, 2, K]): the coefficients would collide."""
+    srt = top.sort(2).values
+    return bool((srt[..., 1:] == srt[..., :-1]).any())
 
 
 def save_splats2d(model: Splats2D, path: str | Path) -> Path:
@@ -117,9 +136,10 @@ def _check_header(path: Path, kernel: str, n: int, height: int, width: int, grid
     again = "re-run `splatk image` to write it again"
     if height * width > MAX_PIXELS:
         raise InputError(path, f"{corrupt} (a {width}x{height} image, over the {MAX_PIXELS} pixel limit)", again)
-    if kernel != "learned" and (latent_dim or entries):
+    decoded = image_kernel(kernel).decoded
+    if (not decoded and latent_dim) or (kernel != "learned" and entries):
         raise InputError(path, f"{corrupt} (latents or a palette for the {kernel} kernel)", again)
-    if kernel == "learned" and (grid > MAX_GRID or entries > MAX_SHAPES):
+    if decoded and (grid > MAX_GRID or entries > MAX_SHAPES):
         raise InputError(path, f"{corrupt} (table grid {grid} or palette of {entries} past the limits "
                                f"{MAX_GRID} and {MAX_SHAPES})", again)
     expected = HEADER_BYTES + payload_bytes(kernel, n, latent_dim, entries)
@@ -156,8 +176,19 @@ def load_splats2d(path: str | Path) -> Splats2D:
     r = _Reader(data, path)
     with torch.no_grad():
         model.xy_raw.copy_(r.take(_F32, (n, 2)))
-        model.chol.copy_(r.take(_F32, (n, 3)))
+        if kernel == "gabsplat":
+            model.sigmas.copy_(r.take(_F32, (n, 2)))
+            model.angle.copy_(r.take(_F32, (n,)))
+        else:
+            model.chol.copy_(r.take(_F32, (n, 3)))
         model.colors.copy_(r.take(_F32, (n, 3)))
+        if kernel == "gabsplat":
+            coeffs = r.take(_F32, (n, 2, GABSPLAT_TOP))
+            top = r.take(_U8, (n, 2, GABSPLAT_TOP))
+            if int(top.max()) >= GABSPLAT_BANK or _repeats(top):
+                raise InputError(path, "splat file is corrupt (a wave index past the bank or repeated)")
+            model.wave_coeffs.zero_()
+            model.wave_coeffs.scatter_(2, top, coeffs)
         if kernel == "gabor":
             model.gabor_amps.copy_(r.take(_F32, (n, 2, GABOR_WAVES)))
             model.gabor_freqs.copy_(r.take(_F32, (n, 2, GABOR_WAVES)))
@@ -167,6 +198,9 @@ def load_splats2d(path: str | Path) -> Splats2D:
                 index = r.take(_U8, (n,))
             else:
                 model.latents.copy_(r.take(_F32, (n, latent_dim)))
+        if kernel == "learned-paper":
+            model.latents.copy_(r.take(_F32, (n, latent_dim)))
+        if model.kernel2d.decoded:
             for t in _decoder_tensors(model):
                 t.copy_(r.take(_F16, tuple(t.shape)))
             if entries:

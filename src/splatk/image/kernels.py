@@ -12,6 +12,14 @@ coordinates (the 3-sigma ellipse is the unit disk, see :mod:`splatk.image.model`
   ReLU), optionally with a shape palette and a turn per splat (:mod:`splatk.image.model`).
                                                                  8 + L floats + 1 byte
 
+* ``gabsplat``: GabSplat, the Gabor splatting baseline the paper compares against (Wurster et
+  al. 2024; peers.md Sec. 7.3) in its own rotation-scale geometry (:class:`GabSplatKernel2D`).
+                                                    8 + 2 K floats + 2 K bytes (K = 2 per axis)
+* ``learned-paper``: the paper's planar learned kernel as published, ``k = sigmoid(Phi_dec_planar(
+  u, v, z))`` inside the unit disk, a 10-float latent per splat, no envelope, turn or palette; the
+  budget counts the primitives only, as the paper's "memory footprint for primitives" does
+  (``splatk image --mode paper``).                                  8 + 10 floats
+
 A kernel says what it adds to a splat (floats, bytes, shared floats), makes and trains its own
 parameters on the model, and evaluates ``k(u, v)``; the order of :data:`KERNELS` is the kernel
 code of the splat file (:mod:`splatk.image.file`).
@@ -39,6 +47,24 @@ LATENT_DIM = 2
 TURN_STEPS = 256
 DEC_WIDTH = 8
 GABOR_WAVES = 2
+#: the paper's planar latent size ("a 10D latent code", paper Sec. 4.4)
+PAPER_LATENT_DIM = 10
+#: Adam steps and samples of the paper kernel's pretraining on the Gaussian surfel (paper Sec. 4.5)
+PRETRAIN_STEPS = 300
+PRETRAIN_SAMPLES = 1024
+#: GabSplat: frequencies in the bank (f_j = j GABSPLAT_FREQ_STEP radians per sigma, j < BANK;
+#: an index is one byte), waves kept per axis, random extra waves while exploring, the share of
+#: the fit that explores, and the weight of the coefficients' L1 term (peers.md Sec. 7.3).
+#: GabSplat's code sets the bank's top frequency per image (128 and 1024 radians per sigma for
+#: its large images); a wave of f radians per sigma aliases past f = pi sigma_px, so on splats of
+#: 2 to 6 px the bank stops at 15 (with 128, fits picked aliased waves near 100: noise;
+#: docs/decisions/0012-image-gabsplat.md)
+GABSPLAT_BANK = 16
+GABSPLAT_FREQ_STEP = 1.0
+GABSPLAT_TOP = 2
+GABSPLAT_RANDOM = 2
+GABSPLAT_EXPLORE = 0.8
+GABSPLAT_L1 = 1e-4
 
 
 def envelope(uv: Tensor) -> Tensor:
@@ -83,6 +109,41 @@ class ImageKernel:
     """
 
     name = "base"
+    #: whether ``splatk image --kernel`` offers it (the paper kernel is chosen by ``--mode paper``)
+    choosable = True
+    #: whether the backends' native ``render_image_splats`` draws it (else the torch path does)
+    has_native = True
+    #: whether it has a shared decoder (``model.decoder``, stored at float16, latents per splat)
+    decoded = False
+    #: whether the budget pays for the shared floats too (the paper counts primitives only)
+    pays_shared = True
+
+    def init_geometry(self, model, n: int, s0: float) -> None:
+        """Make the splats' shape parameters: the Cholesky factor in pixels (GaussianImage)."""
+        model.chol = nn.Parameter(torch.tensor([s0, 0.0, s0]).repeat(n, 1))  # l11, l21, l22 (px)
+
+    def chol_factors(self, model) -> tuple[Tensor, Tensor, Tensor]:
+        """l11, l21, l22 with the diagonal kept >= 0.3 px (no degenerate splats)."""
+        c = model.chol
+        return c[:, 0].abs() + 0.3, c[:, 1], c[:, 2].abs() + 0.3
+
+    def geometry_groups(self, model, lr_shape: float, lr_kernel: float) -> list[dict]:
+        """Adam parameter groups of the shape parameters (``lr_shape`` is in pixels)."""
+        return [{"params": [model.chol], "lr": lr_shape}]
+
+    def prepare(self, model, generator: torch.Generator | None) -> None:
+        """Ready a new model for fitting (pretraining); not run when a file is loaded."""
+
+    def before_step(self, model, frac: float, generator: torch.Generator | None) -> None:
+        """Called before each fit iteration at ``frac`` = (iteration - 1) / iterations."""
+
+    def regularization(self, model) -> Tensor | float:
+        """A term added to the fit's loss."""
+        return 0.0
+
+    def table(self, model) -> Tensor | None:
+        """[N, G, G] the per-splat table the render samples (None: no table)."""
+        return None
 
     def extra_floats(self, latent_dim: int, shapes: int) -> int:
         """float32 values per splat beyond xy 2 + Cholesky 3 + colour 3."""
@@ -176,6 +237,7 @@ class LearnedKernel2D(ImageKernel):
     from the per-splat table of decoder values (:meth:`Splats2D.kernel_table`) unless exact."""
 
     name = "learned"
+    decoded = True
 
     def extra_floats(self, latent_dim, shapes):
         return 0 if shapes else latent_dim  # a palette index is a byte, not a latent
@@ -195,6 +257,9 @@ class LearnedKernel2D(ImageKernel):
         return [{"params": [model.latents, model.turn], "lr": lr_kernel},
                 {"params": list(model.decoder.parameters()), "lr": lr_net}]
 
+    def table(self, model):
+        return None if model.exact else model.kernel_table()
+
     def values(self, model, uv, idx, table, extras):
         env = envelope(uv)
         if model.exact or table is None:
@@ -205,8 +270,197 @@ class LearnedKernel2D(ImageKernel):
         return "table", model.grid, table.reshape(model.n, -1)
 
 
+def disk(uv: Tensor) -> Tensor:
+    """1 inside the unit disk (the splat's 3-sigma ellipse), 0 outside: uv [P, 2] -> [P]."""
+    return ((uv * uv).sum(-1) <= 1.0).to(uv.dtype)
+
+
+def pretrain_gaussian(decoder: nn.Module, latent_dim: int, generator: torch.Generator | None) -> None:
+    """Fit ``sigmoid(decoder(u, v, 0))`` to the Gaussian surfel ``exp(-4.5 r^2)`` on the unit disk
+    (paper Sec. 4.5: the planar decoder is pretrained on 2D Gaussian surfels, latents at 0)."""
+    uv = torch.rand(PRETRAIN_SAMPLES, 2, generator=generator) * 2.0 - 1.0
+    uv = uv[(uv * uv).sum(-1) <= 1.0]
+    target = envelope(uv)
+    z = uv.new_zeros(uv.shape[0], latent_dim)
+    opt = torch.optim.Adam(decoder.parameters(), lr=1e-2)
+    for _ in range(PRETRAIN_STEPS):
+        loss = ((torch.sigmoid(decoder(uv, z)) - target) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+
+@register_image_kernel
+class PaperLearnedKernel2D(ImageKernel):
+    """The paper's planar kernel: ``sigmoid(Phi_dec_planar(u, v, z))`` on the unit disk (paper Eq. 9,
+    a sigmoid output as the volumetric decoder's), a latent per splat, drawn from the per-splat
+    table unless exact. The budget pays for the primitives only (the paper compares "a similar
+    memory footprint for primitives"); the file still stores the decoder, at float16."""
+
+    name = "learned-paper"
+    choosable = False
+    has_native = False  # the native table kind multiplies by the Gaussian envelope
+    decoded = True
+    pays_shared = False
+
+    def extra_floats(self, latent_dim, shapes):
+        return latent_dim
+
+    def shared_floats(self, latent_dim, shapes):
+        return decoder_floats(latent_dim)
+
+    def init_params(self, model, n, latent_dim, generator):
+        model.latents = nn.Parameter(torch.zeros(n, latent_dim))  # all zeros, as the paper's z
+        model.decoder = PlanarDecoder(latent_dim)
+        nn.init.kaiming_normal_(model.decoder.l3.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+
+    def prepare(self, model, generator):
+        pretrain_gaussian(model.decoder, model.latent_dim, generator)
+
+    def param_groups(self, model, lr_kernel, lr_net):
+        return [{"params": [model.latents], "lr": lr_kernel},
+                {"params": list(model.decoder.parameters()), "lr": lr_net}]
+
+    def table(self, model):
+        if model.exact:
+            return None
+        g = torch.linspace(-1.0, 1.0, model.grid, dtype=model.latents.dtype, device=model.latents.device)
+        vv, uu = torch.meshgrid(g, g, indexing="ij")
+        uv = torch.stack([uu, vv], -1).reshape(1, -1, 2)
+        out = torch.sigmoid(model.decoder(uv, model.latents[:, None, :]))
+        return out.reshape(model.n, model.grid, model.grid)
+
+    def values(self, model, uv, idx, table, extras):
+        if model.exact or table is None:
+            return disk(uv) * torch.sigmoid(model.decoder(uv, model.latents[idx]))
+        return disk(uv) * bilinear(table, idx, uv)
+
+
+class _WaveProduct(torch.autograd.Function):
+    """``prod_d sum_j a_{j,d} cos(f_{j,d} t_d)`` for t [P, 2], a and f [P, 2, M] -> [P], with a
+    hand-written backward (autograd's graph of the same keeps five [P, 2, M] tensors per pass);
+    ``f`` are the bank indices (no gradient; a frequency is its index times GABSPLAT_FREQ_STEP)."""
+
+    @staticmethod
+    def forward(ctx, t, a, f):
+        ft = f * GABSPLAT_FREQ_STEP * t[:, :, None]
+        cos = torch.cos(ft)
+        sums = (a * cos).sum(-1)  # [P, 2]
+        ctx.save_for_backward(t, a, f, cos, sums)
+        return sums[:, 0] * sums[:, 1]
+
+    @staticmethod
+    def backward(ctx, v_w):
+        t, a, f, cos, sums = ctx.saved_tensors
+        v_sums = v_w[:, None] * sums.flip(1)  # d(s0 s1)/d s0 = s1, and the other way
+        v_a = v_sums[:, :, None] * cos
+        fs = f * GABSPLAT_FREQ_STEP
+        v_t = -v_sums * (a * fs * torch.sin(fs * t[:, :, None])).sum(-1)
+        return v_t, v_a, None
+
+
+@register_image_kernel
+class GabSplatKernel2D(ImageKernel):
+    """GabSplat (Gabor splatting, Wurster et al. 2024; peers.md Sec. 7.3) for summed images.
+
+    Geometry is rotation-scale, as GabSplat's: sigmas ``s`` [N, 2] (px) and an angle ``theta``,
+    so the waves run along the ellipse's own axes. With ``t = S R (x - mu)`` (S = diag(1 / s),
+    pixel offsets into the ellipse's frame, in sigmas)::
+
+        k = exp(-|t|^2 / 2) * prod_{d in 1, 2} sum_{j in top K} a_{j,d} cos(f_j t_d),   f_j = j
+
+    over a bank of :data:`GABSPLAT_BANK` frequencies ``f_j = j`` (``max_frequency * j /
+    num_frequencies`` with GabSplat's defaults, max_frequency = num_frequencies), cut at 3 sigma.
+    Every splat trains a coefficient for every bank frequency and axis; each step draws the
+    :data:`GABSPLAT_TOP` largest per axis plus :data:`GABSPLAT_RANDOM` random others (GabSplat's
+    top-2 + 2 random), the random ones only for the first :data:`GABSPLAT_EXPLORE` of the fit so
+    the image trained last is the one stored. Loss term: ``1e-4 mean |a|`` (GabSplat's).
+    Stored per splat: xy 2, sigmas 2, angle 1, colour 3, the top K coefficients per axis (float32)
+    and their bank indices (a byte each).
+    """
+
+    name = "gabsplat"
+    has_native = False
+
+    def extra_floats(self, latent_dim, shapes):
+        return 2 * GABSPLAT_TOP
+
+    def extra_bytes(self, shapes):
+        return 2 * GABSPLAT_TOP
+
+    def init_geometry(self, model, n, s0):
+        model.sigmas = nn.Parameter(torch.full((n, 2), s0))
+        model.angle = nn.Parameter(torch.zeros(n))
+
+    def chol_factors(self, model):
+        s1, s2 = model.sigmas[:, 0].abs() + 0.3, model.sigmas[:, 1].abs() + 0.3
+        c, s = torch.cos(model.angle), torch.sin(model.angle)
+        # Sigma = R^T diag(s1^2, s2^2) R with R's rows (c, s) and (-s, c); its Cholesky factor
+        sxx = c * c * s1 * s1 + s * s * s2 * s2
+        sxy = c * s * (s1 * s1 - s2 * s2)
+        l11 = torch.sqrt(sxx)
+        return l11, sxy / l11, s1 * s2 / l11
+
+    def geometry_groups(self, model, lr_shape, lr_kernel):
+        return [{"params": [model.sigmas], "lr": lr_shape}, {"params": [model.angle], "lr": lr_kernel}]
+
+    def param_groups(self, model, lr_kernel, lr_net):
+        return [{"params": [model.wave_coeffs], "lr": lr_kernel}]
+
+    def init_params(self, model, n, latent_dim, generator):
+        # frequency 0 at weight 1, the rest 0: the splat starts as the Gaussian, as every kernel here
+        # (GabSplat draws 0.1 N(0, 1) for all, which did worse: docs/decisions/0012-image-gabsplat.md)
+        coeffs = torch.zeros(n, 2, GABSPLAT_BANK)
+        coeffs[..., 0] = 1.0
+        model.wave_coeffs = nn.Parameter(coeffs)
+        model.wave_random = None  # [N, 2, R] this step's random picks while exploring
+
+    def before_step(self, model, frac, generator):
+        if frac >= GABSPLAT_EXPLORE or GABSPLAT_RANDOM == 0:
+            model.wave_random = None
+            return
+        # R distinct picks among the frequencies outside each axis's top K
+        scores = torch.rand(model.wave_coeffs.shape, generator=generator).to(model.wave_coeffs.device)
+        scores.scatter_(2, self.top(model), -1.0)
+        model.wave_random = scores.topk(GABSPLAT_RANDOM, dim=2).indices
+
+    @staticmethod
+    def top(model) -> Tensor:
+        """[N, 2, K] bank indices of each axis's K largest |coefficients| (what is stored)."""
+        return model.wave_coeffs.detach().abs().topk(GABSPLAT_TOP, dim=2).indices
+
+    def picked(self, model) -> Tensor:
+        """[N, 2, M] the bank indices drawn this step (top K, and the random ones while exploring)."""
+        top = self.top(model)
+        return top if model.wave_random is None else torch.cat([top, model.wave_random], 2)
+
+    def regularization(self, model):
+        return GABSPLAT_L1 * model.wave_coeffs.abs().mean()
+
+    def extras(self, model):
+        l11, l21, l22 = self.chol_factors(model)
+        s1, s2 = model.sigmas[:, 0].abs() + 0.3, model.sigmas[:, 1].abs() + 0.3
+        c, s = torch.cos(model.angle), torch.sin(model.angle)
+        # t = S R (x - mu) with x - mu = 3 L (u, v): Q = 3 S R L, row by row
+        q = 3.0 * torch.stack([(c * l11 + s * l21) / s1, s * l22 / s1,
+                               (-s * l11 + c * l21) / s2, c * l22 / s2], 1)
+        idx = self.picked(model)
+        coeffs = model.wave_coeffs.gather(2, idx)
+        return torch.cat([q, coeffs.reshape(model.n, -1), idx.to(q.dtype).reshape(model.n, -1)], 1)
+
+    def values(self, model, uv, idx, table, extras):
+        if extras is None:
+            extras = self.extras(model)[idx]
+        m = (extras.shape[1] - 4) // 4
+        q, a, f = extras.split([4, 2 * m, 2 * m], 1)
+        t = (q.reshape(-1, 2, 2) * uv[:, None, :]).sum(-1)  # [P, 2] = Q (u, v)
+        return envelope(uv) * _WaveProduct.apply(t, a.reshape(-1, 2, m), f.detach().reshape(-1, 2, m))
+
+
 #: the 2D kernel names (file order)
 KERNELS = tuple(IMAGE_KERNELS)
+#: the kernels `splatk image --kernel` offers
+KERNEL_CHOICES = tuple(k for k, cls in IMAGE_KERNELS.items() if cls.choosable)
 
 
 def image_kernel(name: str) -> ImageKernel:

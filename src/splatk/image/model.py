@@ -1,6 +1,7 @@
-"""2D splats that represent one image (:class:`Splats2D`): Gaussian, Gabor and learned planar kernels.
+"""2D splats that represent one image (:class:`Splats2D`): Gaussian, Gabor, GabSplat and learned kernels.
 
-All three share the geometry of GaussianImage (Zhang et al. 2024; peers.md Sec. 7.1): a mean
+All but GabSplat (rotation-scale, as its authors'; :class:`~splatk.image.kernels.GabSplatKernel2D`)
+share the geometry of GaussianImage (Zhang et al. 2024; peers.md Sec. 7.1): a mean
 ``xy`` (``tanh`` of a raw value, so [-1, 1] maps to the image), a lower-triangular Cholesky
 factor ``L = [[l11, 0], [l21, l22]]`` of the covariance in pixels (``Sigma = L L^T``) and an
 RGB colour. The image is the plain sum (no alpha compositing)::
@@ -10,7 +11,7 @@ RGB colour. The image is the plain sum (no alpha compositing)::
 where ``(u, v) = L^-1 (x - mu) / 3`` are the splat's local coordinates: the 3-sigma ellipse is
 the unit disk, which is also each kernel's support (3 sigma, as GaussianImage).
 
-The kernels k(u, v) (gaussian, gabor, learned) are in :mod:`splatk.image.kernels`. The learned one
+The kernels k(u, v) (gaussian, gabor, gabsplat, learned, learned-paper) are in :mod:`splatk.image.kernels`. The learned one
 may also be stored with a shape palette:
 
 * ``learned`` with a shape palette (``shapes = K``, 1 to 256): the same kernel, but what is
@@ -101,7 +102,7 @@ class Splats2D(nn.Module):
     """N 2D splats of one kernel kind fitted to an H x W image.
 
     Args:
-        kernel: gaussian | gabor | learned.
+        kernel: a name of :data:`~splatk.image.kernels.KERNELS`.
         n: number of primitives.
         height, width: image size in pixels.
         grid: table nodes per axis of the learned kernel (4 to 8 are sensible).
@@ -124,7 +125,7 @@ class Splats2D(nn.Module):
             raise ValueError(f"need at least one primitive, got {n}")
         self.kernel, self.n, self.height, self.width = kernel, int(n), int(height), int(width)
         self.grid, self.exact = int(grid), bool(exact)
-        if kernel == "learned" and latent_dim < 0:
+        if self.kernel2d.decoded and latent_dim < 0:
             raise ValueError(f"latent_dim must be >= 0, got {latent_dim}")
         self.latent_dim = int(latent_dim)
         check_shapes(int(shapes))
@@ -135,10 +136,10 @@ class Splats2D(nn.Module):
         gen = generator
         self.xy_raw = nn.Parameter(torch.atanh(torch.rand(n, 2, generator=gen) * 1.96 - 0.98))
         # initial sigma: splats tile the image about twice over
-        s0 = 0.5 * math.sqrt(height * width / n)
-        self.chol = nn.Parameter(torch.tensor([s0, 0.0, s0]).repeat(n, 1))  # l11, l21, l22 (px)
+        self.s0 = 0.5 * math.sqrt(height * width / n)
+        self.kernel2d.init_geometry(self, n, self.s0)  # chol; gabsplat: sigmas and angle
         self.colors = nn.Parameter(torch.rand(n, 3, generator=gen) * 0.1)
-        # gabor: gabor_amps, gabor_freqs; learned: latents, decoder, turn
+        # gabor: gabor_amps, gabor_freqs; gabsplat: wave_coeffs; learned: latents, decoder, turn
         self.kernel2d.init_params(self, n, latent_dim, gen)
 
     # ---- geometry -------------------------------------------------------------------------
@@ -148,9 +149,9 @@ class Splats2D(nn.Module):
         return t * torch.tensor([self.width, self.height], dtype=t.dtype, device=t.device)
 
     def chol_factors(self) -> tuple[Tensor, Tensor, Tensor]:
-        """l11, l21, l22 with the diagonal kept >= 0.3 px (no degenerate splats)."""
-        c = self.chol
-        return c[:, 0].abs() + 0.3, c[:, 1], c[:, 2].abs() + 0.3
+        """l11, l21, l22 of the covariance's Cholesky factor in pixels, sigmas >= 0.3 px (no
+        degenerate splats)."""
+        return self.kernel2d.chol_factors(self)
 
     @torch.no_grad()
     def quantize_shapes(self, generator: torch.Generator | None = None) -> None:
@@ -166,9 +167,9 @@ class Splats2D(nn.Module):
 
     @torch.no_grad()
     def round_shared(self) -> None:
-        """Round the learned kernel's shared decoder and palette to :data:`SHARED_DTYPE`, the
-        precision :func:`network_bytes` pays for (values stay float32 tensors)."""
-        if self.kernel != "learned":
+        """Round a learned kernel's shared decoder and palette to :data:`SHARED_DTYPE`, the
+        precision the file stores them at (values stay float32 tensors)."""
+        if not self.kernel2d.decoded:
             return
         shared = list(self.decoder.parameters()) + ([self.palette] if self.palette is not None else [])
         for p in shared:
@@ -251,18 +252,23 @@ class Splats2D(nn.Module):
 
     def resolve_backend(self) -> Backend:
         """The backend named by ``self.backend`` for the splats' device (what :meth:`render`
-        uses when given none); the exact learned mode, which only the torch path has, refuses
-        the native ``cpu`` backend by name. Raises ``BackendUnavailable`` (with the reason) for
+        uses when given none); the exact learned mode and the kernels without a native op
+        (gabsplat, learned-paper), which only the torch path draws, refuse the native ``cpu``
+        backend by name (``auto`` draws them with torch). Raises ``BackendUnavailable`` (with the reason) for
         a backend that cannot run on the splats' device."""
-        if self.backend == "cpu" and self.kernel == "learned" and self.exact:
+        if self.backend == "cpu" and self.kernel2d.decoded and self.exact:
             raise ValueError("the exact learned mode has no cpu backend; use backend torch")
+        if self.backend == "cpu" and not self.kernel2d.has_native:
+            raise ValueError(f"the {self.kernel} kernel has no cpu backend; use backend torch or auto")
         return backends.get(self.backend, self.xy_raw.device)
 
     def uses_native(self, backend: Backend | None = None) -> bool:
         """Whether :meth:`render` with ``backend`` (default: :meth:`resolve_backend`) runs a native
         op (see the module docstring)."""
         backend = self.resolve_backend() if backend is None else backend
-        return not (self.kernel == "learned" and self.exact) and backend.render_image_splats is not None
+        if not self.kernel2d.has_native or (self.kernel2d.decoded and self.exact):
+            return False
+        return backend.render_image_splats is not None
 
     def render(self, backend: Backend | None = None) -> Tensor:
         """[H, W, 3] image (unclamped sum of the splats), drawn with ``backend``'s native op when
@@ -270,7 +276,7 @@ class Splats2D(nn.Module):
         backend = self.resolve_backend() if backend is None else backend
         means = self.means_px()
         l11, l21, l22 = self.chol_factors()
-        table = self.kernel_table() if self.kernel == "learned" and not self.exact else None
+        table = self.kernel2d.table(self)
         if self.uses_native(backend):
             x0, y0, rx, ry = self._boxes(means.detach(), l11.detach(), l21.detach(), l22.detach())
             bbox = torch.stack([x0, y0, x0 + 2 * rx + 1, y0 + 2 * ry + 1], 1).to(torch.int32).contiguous()
@@ -284,24 +290,28 @@ class Splats2D(nn.Module):
         out = torch.zeros(self.height * self.width, 3, dtype=means.dtype, device=means.device)
         for s in range(0, idx.numel(), CHUNK_PAIRS):
             i, x, y = idx[s:s + CHUNK_PAIRS], px[s:s + CHUNK_PAIRS], py[s:s + CHUNK_PAIRS]
-            g = packed.index_select(0, i)
-            dx = (x.to(means.dtype) + 0.5) - g[:, 0]
-            dy = (y.to(means.dtype) + 0.5) - g[:, 1]
-            u = dx / g[:, 2]
-            v = (dy - g[:, 3] * u) / g[:, 4]  # L^-1 (x - mu), forward substitution
+            # one split, not a slice per column: each slice's backward fills a zero [P, 8 + E]
+            mx, my, l11s, l21s, l22s, cols, extras = packed.index_select(0, i).split(
+                [1, 1, 1, 1, 1, 3, packed.shape[1] - 8], 1)
+            dx = (x.to(means.dtype) + 0.5) - mx[:, 0]
+            dy = (y.to(means.dtype) + 0.5) - my[:, 0]
+            u = dx / l11s[:, 0]
+            v = (dy - l21s[:, 0] * u) / l22s[:, 0]  # L^-1 (x - mu), forward substitution
             uv = torch.stack([u, v], -1) * (1.0 / SUPPORT_SIGMAS)
-            w = self.kernel_values(uv, i, table, g[:, 8:])
-            out = out.index_add(0, (y * self.width + x).long(), w[:, None] * g[:, 5:8])
+            w = self.kernel_values(uv, i, table, extras)
+            out = out.index_add(0, (y * self.width + x).long(), w[:, None] * cols)
         return out.reshape(self.height, self.width, 3)
 
     def describe_bytes(self) -> dict:
-        """Honest storage: per-splat floats at float32 (and a byte per turn and palette index), the
-        shared decoder and palette at float16. ``bytes`` is everything needed to redraw the image
-        (the primitives and, for the learned kernel, the shared decoder and palette), and what
-        :func:`splatk.image.file.save_splats2d` writes after its header."""
+        """Honest storage: per-splat floats at float32 (and a byte per turn, palette index or wave
+        index), the shared decoder and palette at float16. ``bytes`` is everything needed to redraw
+        the image, and what :func:`splatk.image.file.save_splats2d` writes after its header;
+        ``counted_bytes`` is what the budget paid for (``bytes`` less the shared part for the
+        paper's kernel, whose comparison counts the primitives only)."""
         # the palette actually made (k-means makes fewer entries than asked when n < shapes)
         shapes = self.palette.shape[0] if self.palette is not None else self.shapes
         per = bytes_per_primitive(self.kernel, self.latent_dim, shapes)
         net = network_bytes(self.kernel, self.latent_dim, shapes)
+        counted = per * self.n + (net if self.kernel2d.pays_shared else 0)
         return {"bytes": per * self.n + net, "primitive_bytes": per * self.n, "bytes_per_primitive": per,
-                "network_bytes": net}
+                "network_bytes": net, "counted_bytes": counted}

@@ -39,7 +39,7 @@ def kernels_picture(model: Splats2D, count: int = 16, res: int = 48) -> "object"
         g = torch.linspace(-1, 1, res)
         vv, uu = torch.meshgrid(g, g, indexing="ij")
         uv = torch.stack([uu, vv], -1).reshape(-1, 2)
-        table = model.kernel_table() if model.kernel == "learned" else None
+        table = model.kernel2d.table(model)
         tiles = []
         for i in order.tolist():
             idx = torch.full((uv.shape[0],), i, dtype=torch.long)

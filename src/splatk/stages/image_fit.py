@@ -27,7 +27,7 @@ from .fit_config import MEMORY_SHARE
 from ..metrics import compute_metrics, lpips_available
 from ..image.bytes import MAX_SHAPES
 from ..image.file import load_splats2d, save_splats2d
-from ..image.fit import ImageFitConfig, fit_image
+from ..image.fit import MODES, ImageFitConfig, fit_image
 from ..image.kernels import KERNELS, decoder_floats
 from ..image.model import BACKENDS
 from ..image.pictures import kernels_picture, primitives_picture
@@ -42,7 +42,7 @@ BYTES_PER_PIXEL = 64
 BYTES_PER_SPLAT = 512
 
 IMAGE_RULES = [
-    ("kernel", choice(*KERNELS)), ("budget_bytes", int_range(1)), ("iters", int_range(1, 10**8)),
+    ("kernel", choice(*KERNELS)), ("mode", choice(*MODES)), ("budget_bytes", int_range(1)), ("iters", int_range(1, 10**8)),
     ("seed", int_range(0, 2**63 - 1)), ("downscale", int_range(1, 10**4)), ("grid", int_range(2, 256)),
     ("exact", BOOL), ("latent_dim", int_range(0, 64)), ("shapes", int_range(0, MAX_SHAPES)),
     ("shape_start", float_range(0.0, 1.0)), ("backend", choice(*BACKENDS)),
@@ -135,14 +135,16 @@ def _write_result(out: Path, photo: Path, target: torch.Tensor, model, summary: 
     result = {
         "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
         "bytes": sizes["bytes"], "primitive_bytes": sizes["primitive_bytes"],
+        # what the budget paid for: ``bytes`` less the decoder in paper mode (primitives only)
+        "counted_bytes": sizes["counted_bytes"],
         "num_primitives": summary["num_primitives"],
-        "kernel": cfg.kernel, "iterations": cfg.iters, "seconds": summary["seconds"],
+        "kernel": model.kernel, "mode": cfg.mode, "iterations": cfg.iters, "seconds": summary["seconds"],
         "bytes_per_primitive": sizes["bytes_per_primitive"], "budget_bytes": cfg.budget_bytes,
         "network_bytes": sizes["network_bytes"],
         # the splats as stored: a 20-byte header, then exactly ``bytes`` (load_splats2d redraws them)
         "file": "splats.bin", "file_bytes": (out / "splats.bin").stat().st_size,
-        "network_floats": decoder_floats(cfg.latent_dim) if cfg.kernel == "learned" else 0,
-        "latent_dim": cfg.latent_dim if cfg.kernel == "learned" else 0,
+        "network_floats": decoder_floats(model.latent_dim) if model.kernel2d.decoded else 0,
+        "latent_dim": model.latent_dim if model.kernel2d.decoded else 0,
         "shapes": model.shapes,
         "image": str(photo), "height": int(target.shape[0]), "width": int(target.shape[1]),
         "config": asdict(cfg),
