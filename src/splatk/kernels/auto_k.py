@@ -2,19 +2,23 @@
 primitive (decision 0102).
 
 k does not change a primitive's bytes (the samples are decoded per view from the latent, paper
-Sec. 4.3); it buys a more expressive profile with render time. The paper's Tab. 2 shows where
-that pays: with few primitives for the pixels to cover (large splats on screen) k = 8 and 4
-beat k = 2; with many (small splats, where a conical hat suffices) k = 2 is as good and faster.
-The rule therefore reads one number, the train image's pixels per primitive of the budget, and
-picks k from thresholds set on the paper's Tanks & Temples budgets and checked on the tuning
-scenes of decision 0100.
+Sec. 4.3); it buys a more expressive profile with render time. The rule reads one number, the
+train image's pixels per primitive of the budget, in bands that each rest on a measurement:
+
+* up to 0.6 (many small splats): k = 2; the paper's Tab. 2 at 1.32M primitives on Tanks & Temples
+  (0.4 px per primitive) has k = 2 ahead of 4 and 8;
+* 0.6 to 1.2: k = 4; at 657K primitives (0.8) k = 4 and 8 tie, ahead of 2, and 4 renders faster;
+* 1.2 to 2: k = 8; at 328K primitives (1.6) k = 8 leads;
+* from 2 (few, large splats, the regime of short CPU runs): k = 2; in splatk at 4.5 px per
+  primitive k = 4 and 8 train worse than k = 2 and lose to the Gaussian on a tuning scene, while
+  k = 2 beats it (decision 0102).
 """
 from __future__ import annotations
 
 #: the value of ``k`` that lets the scene choose
 AUTO_K = "auto"
 #: (least pixels per primitive, k), first match wins
-K_BY_PIXELS_PER_PRIMITIVE = ((1.2, 8), (0.6, 4), (0.0, 2))
+K_BY_PIXELS_PER_PRIMITIVE = ((2.0, 2), (1.2, 8), (0.6, 4), (0.0, 2))
 
 
 def choose_k(pixels_per_view: float, budget: int) -> int:
