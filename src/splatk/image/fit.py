@@ -58,9 +58,8 @@ class ImageFitConfig:
     latent_dim: int = LATENT_DIM
     #: learned kernel: size of the shape palette (0 = a latent per splat; K = K shared latents
     #: and a one-byte index per splat, k-means of the latents at ``shape_start`` of the run).
-    #: Six Kodak photos at 192x128, 2000 iterations (docs/decisions/0008-image-learned-kernel.md,
-    #: before the turn): 64 shapes vs a latent per splat, mean PSNR 25.58 vs 25.44 dB at 8 KiB,
-    #: 29.63 vs 29.34 at 24 KiB (Gaussian 25.75 / 29.64), and the best LPIPS of the three.
+    #: 64 shapes beat a latent per splat on the six Kodak photos at both budgets, with the best
+    #: LPIPS of the three (docs/decisions/0008-image-learned-kernel.md).
     shapes: int = 64
     #: learned kernel with shapes: share of the iterations trained with a latent per splat
     shape_start: float = 0.5
@@ -68,10 +67,9 @@ class ImageFitConfig:
     backend: str = "auto"
     #: torch device to train on (anything but cpu renders with the torch backend)
     device: str = "cpu"
-    # Learning rates, chosen for the Gaussian baseline first (kodim05 + kodim23, downscale 4, 8 and
-    # 24 KiB, 2000 iterations): the shared three at 0.5x / 1x / 2x / 4x of (1e-2, 5e-2, 2e-2) gave
-    # the Gaussian a mean 27.01 / 27.36 / 27.53 / 27.53 dB, so 2x. The learned decoder's rate then
-    # went from 1e-2 to 2e-2 (learned kernel at the shared 1x: 27.54 -> 27.89 dB, seed 0).
+    # Learning rates, chosen for the Gaussian baseline first (kodim05 + kodim23): 2x of
+    # (1e-2, 5e-2, 2e-2) for the shared three, then 2e-2 for the learned decoder
+    # (docs/decisions/0008-image-learned-kernel.md).
     #: Adam learning rate of the means (tanh space: 2e-2 is about W/100 px per step)
     lr_xy: float = 2e-2
     #: Adam learning rate of the Cholesky factors, relative to the initial sigma

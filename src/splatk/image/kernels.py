@@ -37,11 +37,9 @@ from ..functional.planar import bilinear
 #: support in sigmas (GaussianImage uses 3)
 SUPPORT_SIGMAS = 3.0
 LEAKY_SLOPE = 0.01
-#: per-primitive latent floats of the learned kernel. Measured (kodim05 + kodim23, downscale 4,
-#: 24 KiB, 200 iterations; docs/decisions/0008-image-learned-kernel.md): mean PSNR 23.89 dB at 10,
-#: 25.10 at 4, 25.45 at 2, 25.73 at 1, 26.10 at 0 (gaussian 26.10): at equal bytes each latent
-#: float costs primitives and pays back less. At 1000 iterations: 28.50 at 2, 28.45 at 1, 28.80
-#: at 0 (gaussian 28.67). 2 is the best size that keeps a per-primitive shape; 0 shares one.
+#: per-primitive latent floats of the learned kernel: at equal bytes each latent float costs
+#: primitives and pays back less (docs/decisions/0008-image-learned-kernel.md); 2 is the best
+#: size that keeps a per-primitive shape; 0 shares one.
 LATENT_DIM = 2
 #: steps of a learned splat's turn over 2 pi: one byte
 TURN_STEPS = 256

@@ -49,13 +49,13 @@ class AutoBudgetConfig:
 
     #: first budget = start_fraction x the fit's budget (100,000 -> 50,000). Half, not a quarter:
     #: the compaction cuts a model back to what it needs, while a first stage judged too small
-    #: stays too small (cup and bonsai at 1/16, seeds 0 and 1, stopped at 25,000 on mid-run gains
-    #: of -1.96 to +0.45 dB, and ended 0.35 to 1.17 dB below a run with 4x the budget)
+    #: stays too small (decision 0006: a quarter stopped cup and bonsai at 25,000, below a run
+    #: with 4x the budget)
     start_fraction: float = 0.5
     #: largest budget tried = max_factor x the fit's budget
     max_factor: float = 4.0
     #: keep doubling while a doubling gains more than this on the held-out views (dB). 0.5, not
-    #: the 0.2 of the issue's PSNR tolerance: gains below 0.5 dB on a few held-out views did not
+    #: the 0.2 of the PSNR tolerance: smaller gains on a few held-out views did not
     #: last to the end of the run (decision 0006), while each doubling does double the memory
     threshold_db: float = 0.5
     #: each budget's short run trains for this share of the run (of the iterations, or of the
@@ -69,7 +69,7 @@ class AutoBudgetConfig:
     #: largest train-view PSNR drop the compaction may cost, before fine-tuning (dB). 0.6, not the
     #: issue's 0.2 for "as good as 4x the budget": the train views overstate what a primitive is
     #: worth on new views, and the fine-tuning wins part of the drop back (decision 0006: from 0.2
-    #: to 0.6 the final models shrank by 14-29% and the test PSNR of each moved by 0.08 dB at most)
+    #: to 0.6 the final models shrank by 14-29% and their test PSNR barely moved)
     compact_tolerance_db: float = 0.6
     #: never keep fewer than this share of the primitives
     compact_min_keep: float = 0.25

@@ -101,8 +101,7 @@ def boost_short_run_lrs(cfg, keep: frozenset | set = frozenset()) -> dict:
         return {}
     boosted = {}
     if "scales_lr_mult" not in keep:
-        # the log-scale LR is tuned for 30k iterations; short runs starve it (fox, random
-        # init, 2000 iterations: learned k=4 13.9 -> 21.7 dB at x3, gaussian 20.9 -> 21.6)
+        # the log-scale LR is tuned for 30k iterations; short runs starve it (decision 0001)
         cfg.train.scales_lr_mult = boosted["scales_lr_mult"] = round(min(SCALES_LR_MULT_MAX, math.sqrt(1 / s)), 3)
     boosted.update(_scale_kernel_options(cfg, s, keep, schedules=False))
     return boosted

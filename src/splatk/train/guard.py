@@ -22,17 +22,15 @@ LOSS_WINDOW = 50
 HEALTHY_LOSS_FACTOR = 1.25
 #: ... and a run whose running mean rises this far above its first value (the plain mean of its
 #: first LOSS_WINDOW steps) is rolled back as well: a run that collapses before it ever improved
-#: has its lowest mean near its start, where divergence_factor x lowest cannot see it (short-run
-#: LRs and LR x10, 1000 iterations: lego learned k=2 9.65 -> 24.46 dB, fox Gaussian 11.58 -> 16.81
-#: dB with this check; docs/decisions/0005-collapse-rollback.md)
+#: has its lowest mean near its start, where divergence_factor x lowest cannot see it
+#: (docs/decisions/0005-collapse-rollback.md)
 START_LOSS_FACTOR = 1.25
 #: a primitive whose largest scale is below this share of the scene's extent draws nothing a
 #: camera of the scene resolves (lego at 1/4 resolution: a pixel is ~3e-3 of the extent), and a
-#: model of only such primitives (and transparent ones) is rolled back. With short-run LRs and LR
-#: x10, lego's learned k=4 shrank every scale to ~1e-6 of the extent while opaque and ended at
-#: 11.1 dB, drawn only by the projection's low-pass; caught at 1e-4 it rolled back twice (at
-#: iterations 92 and 81, to the init) and ended at 27.0 dB. At 1e-5 the snapshots it went back
-#: to were already shrinking, and six rollbacks ended at 11.9 dB.
+#: model of only such primitives (and transparent ones) is rolled back: with LRs x10 a learned
+#: model can shrink every scale to ~1e-6 of the extent while staying opaque, drawn only by the
+#: projection's low-pass. 1e-5 caught it too late: the snapshots it went back to were already
+#: shrinking (docs/decisions/0005-collapse-rollback.md).
 VANISHED_SCALE = 1e-4
 #: a loss rise that comes back after this many rollbacks to the same snapshot is not the step
 #: size's doing: the loss check goes off (until the next snapshot) and the step size returns to

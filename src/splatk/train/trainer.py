@@ -46,8 +46,7 @@ class TrainConfig:
     init: str = "auto"
     #: random init: number of points (None: a quarter of the budget). MCMC then grows the model
     #: to the budget, and the growth is what carries primitives out of the init box to the
-    #: background: on fox (1/8 resolution, 2000 iterations, 50k budget) starting at the budget
-    #: gave 24.40 dB, at a quarter 26.65 dB. 3DGS-MCMC starts at a tenth or less of its cap.
+    #: background (decision 0011). 3DGS-MCMC starts at a tenth or less of its cap.
     random_points: int | None = None
     #: initial scale = init_scale x neighbour spacing (0: 0.1 for random init, 1 for SfM as DBS)
     init_scale: float = 0.0
@@ -79,8 +78,8 @@ class TrainConfig:
     #: keep an in-memory snapshot this often for rollback (NaN or collapse)
     snapshot_every: int = 200
     #: roll back (as for a NaN) when the loss's running mean rises above this many times its
-    #: lowest value: a run can collapse to an empty image without a NaN (cup, learning rates
-    #: x10, 1000 iterations: loss 0.10 -> 0.66, 4.8 dB). Early collapses, whose lowest mean is
+    #: lowest value: a run can collapse to an empty image without a NaN (decision 0005: cup,
+    #: learning rates x10, loss 0.10 -> 0.66). Early collapses, whose lowest mean is
     #: still near the initial loss, are left to the START_LOSS_FACTOR test: 1.5 here caught them
     #: too, but also fired on healthy growth (bonsai, --budget auto, the 50k -> 100k stage: mean
     #: 0.065 vs lowest 0.043 while MCMC doubled the model, on both seeds). 0 turns every
