@@ -10,14 +10,14 @@ from tests.scenes import random_model
 
 def test_the_learned_kernel_pays_a_third_per_unit_scale():
     gaussian, learned = random_model(30, 1), random_model(30, 1, kernel="learned")
-    mean_scale = float(gaussian.scales.abs().mean())
+    mean_scale = float(gaussian.scales.detach().abs().mean())
     assert torch.equal(gaussian.scales, learned.scales)
-    assert float(regularisers(gaussian, 0.0, 0.01)) == pytest.approx(0.01 * mean_scale, rel=1e-6)
-    assert float(regularisers(learned, 0.0, 0.01)) == pytest.approx(0.01 * mean_scale / 3, rel=1e-6)
+    assert float(regularisers(gaussian, 0.0, 0.01).detach()) == pytest.approx(0.01 * mean_scale, rel=1e-6)
+    assert float(regularisers(learned, 0.0, 0.01).detach()) == pytest.approx(0.01 * mean_scale / 3, rel=1e-6)
     # the same footprint on screen (learned scales three times the Gaussian's) costs the same
     with torch.no_grad():
         learned.prims["log_scales"] += torch.log(torch.tensor(3.0))
-    assert float(regularisers(learned, 0.0, 0.01)) == pytest.approx(float(regularisers(gaussian, 0.0, 0.01)), rel=1e-5)
+    assert float(regularisers(learned, 0.0, 0.01).detach()) == pytest.approx(float(regularisers(gaussian, 0.0, 0.01).detach()), rel=1e-5)
 
 
 def test_scale_reg_weight_is_a_recorded_checked_option():
