@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import sys
 import time
 from dataclasses import dataclass
 from datetime import timedelta
@@ -271,4 +272,14 @@ def launch_local(nproc: int, entrypoint: Callable, *args) -> dict[int, int]:
 def _rank_main(rank: int, nproc: int, port: int, entrypoint: Callable, args: tuple) -> None:
     os.environ.update({"RANK": str(rank), "LOCAL_RANK": str(rank), "WORLD_SIZE": str(nproc),
                        "LOCAL_WORLD_SIZE": str(nproc), "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)})
-    entrypoint(*args)
+    try:
+        entrypoint(*args)
+        code = 0
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    # The fit is written and the group left: end here, without the interpreter's teardown, where
+    # a gloo thread still being destroyed can abort a finished worker ("terminate called
+    # without an active exception") and turn its exit code into SIGABRT's.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
