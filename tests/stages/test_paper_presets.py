@@ -76,5 +76,8 @@ def test_two_iteration_grid_runs_and_says_it_is_shortened(name, scene, tmp_path)
         opts = by_name["z3d-1"]["config"]["kernel_options"]
         assert opts["latent_dim"] == 1 and Path(opts["weights"]).parent == (out / "pretrain").resolve()
         assert torch.load(opts["weights"], weights_only=True)["options"]["latent_dim"] == 1
+    if name == "paper_tab2":  # --k auto ran with the k the scene's pixels per primitive chose
+        auto = [r for r in rows if "-kauto-" in r["method"]]
+        assert len(auto) == 3 and all(r["config"]["kernel_options"]["k"] in (2, 4, 8) for r in auto)
     if name == "paper_tab5":
         assert len(list((out / "pretrain").glob("*.pt"))) == 4  # four targets, shared by k = 2, 4, 8
