@@ -229,3 +229,19 @@ def test_a_short_fit_with_the_normal_term_lowers_it_and_still_fits():
     assert loss_on < 0.7 * loss_off, (loss_on, loss_off)
     psnr_on, psnr_off = _mean_psnr(on.model, scene.test, bg), _mean_psnr(off.model, scene.test, bg)
     assert psnr_on > 20.0 and psnr_on > psnr_off - 1.0, (psnr_on, psnr_off)
+
+
+def test_a_term_switching_on_is_no_divergence():
+    """A heavy normal term lifts the loss many times over at its start; the guard judges the
+    loss without the geometry terms, so that step is no rollback."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        scene = synthetic_scene(num_views=8, size=24)
+        tr, logged = _fit(scene, 1.0, 150)
+    finally:
+        torch.set_num_threads(threads)
+    assert logged[50].normal_loss is not None
+    jump = logged[50].loss / logged[49].loss
+    assert jump > 2.0, jump  # judged with the term, the guard rolled this run back four times
+    assert not tr.events, tr.events

@@ -219,7 +219,7 @@ class Trainer:
         # every rank draws the batch's backgrounds in the batch's order, so a random background
         # stays the one-process run's whatever share a rank renders
         drawn = [self._background_and_target(vi) for vi in views]
-        renders, targets, photo_loss, terms = [], [], 0.0, {}
+        renders, targets, photo_loss, terms, geo_sum = [], [], 0.0, {}, 0.0
         # planar models composite their geometry channels only while a geometry term is on
         geometry = {"geometry": True} if self.geometry_terms.wanted(self.it) else {}
         for vi in mine:
@@ -231,6 +231,7 @@ class Trainer:
             if geometry:
                 geo_loss, values = self.geometry_terms(self.it, out.geometry, out.alpha, cam.K)
                 photo_loss = photo_loss + geo_loss
+                geo_sum = geo_sum + geo_loss.detach()
                 for name, value in values.items():
                     terms[name] = terms.get(name, 0.0) + value.detach()
             renders.append(out)
@@ -245,13 +246,16 @@ class Trainer:
             # the summed gradients are the one-process batch's: each rank adds 1/N of the
             # regularisers; the loss every rank judges (NaN, rollbacks) is the whole batch's
             loss = photo_loss + reg / self.world.size
-            photo_sum, mse, *term_sums = self.world.sum_values([photo_loss.detach(), mse, *terms.values()],
-                                                               self.device)
+            photo_sum, mse, geo_sum, *term_sums = self.world.sum_values(
+                [photo_loss.detach(), mse, geo_sum, *terms.values()], self.device)
             terms = dict(zip(terms, term_sums))
             loss_value = photo_sum + float(reg.detach())
         else:
             loss = photo_loss + reg
             loss_value = float(loss.detach())
+        # the guard judges the loss without the geometry terms: they start at a set iteration,
+        # and the step up in the loss they bring then is no divergence
+        guarded_value = loss_value - float(geo_sum) / len(views)
         if not math.isfinite(loss_value):
             event = self.guard.after_nan_loss()
         else:
@@ -271,7 +275,7 @@ class Trainer:
                 self.net_opt.step()
             with torch.no_grad():
                 self.model.prims["quats"].data = torch.nn.functional.normalize(self.model.prims["quats"].data, dim=-1)
-            event = self.guard.after_step(loss_value)
+            event = self.guard.after_step(guarded_value)
             if event is None:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
                 event = self._note_growth_held()
