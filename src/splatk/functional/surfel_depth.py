@@ -7,13 +7,13 @@ meets that plane at depth ``z = d / (n . r)``, so with ``q = n / d``::
     1 / z = q . r                     (exact for every pixel, not only at the centre)
 
 Blending ``q`` and the six unique entries of ``q q^T`` as extra colour channels (background 0)
-with the blending weights ``w_i`` of a pixel gives, with ``A = sum_i w_i`` (the pixel's alpha)::
+with the blending weights ``b_i`` of a pixel (``A = sum_i b_i`` is its alpha) gives::
 
-    E[1/z]   = sum_i w_i q_i . r          = q_bar . r
-    E[1/z^2] = sum_i w_i (q_i . r)^2      = r^T (q q^T)_bar r
+    E[1/z]   = sum_i b_i q_i . r          = q_bar . r
+    E[1/z^2] = sum_i b_i (q_i . r)^2      = r^T (q q^T)_bar r
 
 so any rasteriser that composites C channels yields both moments, and the blended normal
-``E[n] = sum_i w_i n_i`` from three more channels: the inputs of 2DGS's normal consistency and
+``E[n] = sum_i b_i n_i`` from three more channels: the inputs of 2DGS's normal consistency and
 depth distortion (:mod:`splatk.train.planar_regularisers`).
 """
 from __future__ import annotations

@@ -5,15 +5,16 @@
 ``lambda_dist`` times a depth distortion from iteration 3000 (lambda 0 by default). Both are
 computed here from what one rasteriser call composites (``PlanarModel.render(geometry=True)``:
 normals, ``q`` and ``q q^T`` per surfel, :mod:`splatk.functional.surfel_depth`), so every backend
-has them without a native op of its own:
+has them without a native op of its own.
 
-- depth distortion, per pixel ``A E[w^2] - E[w]^2 = 1/2 sum_ij w_i w_j (w_i - w_j)^2`` with
-  ``w = 1/z`` the inverse depth of each surfel's ray intersection and ``w_i`` (here ``A``, the
-  blending weights' sum, and the weighted sums ``E``) the blending weights: the squared form of
-  2DGS's ``sum_ij w_i w_j |m_i - m_j|``, whose NDC depth ``m`` is an affine map of ``1/z``
+With ``b_i`` a pixel's blending weights, ``A = sum_i b_i`` its alpha, ``E[x] = sum_i b_i x_i``
+(not divided by ``A``) and ``w_i = 1/z_i`` the inverse depth where its ray meets surfel ``i``:
+
+- depth distortion, per pixel ``A E[w^2] - E[w]^2 = 1/2 sum_ij b_i b_j (w_i - w_j)^2``: the squared
+  form of 2DGS's ``sum_ij b_i b_j |m_i - m_j|``, whose NDC depth ``m`` is an affine map of ``1/z``
   (docs/decisions/0103-2dgs-regularisers.md says why the square);
-- normal consistency, per pixel ``A - E[n] . N = sum_i w_i (1 - n_i . N)``, with ``N`` the normal
-  of the depth map ``A / E[1/z]`` by central differences (2DGS's ``depth_to_normal``); pixels at
+- normal consistency, per pixel ``A - E[n] . N = sum_i b_i (1 - n_i . N)``, with ``N`` the normal
+  of the depth map ``A / E[w]`` by central differences (2DGS's ``depth_to_normal``); pixels at
   the border or next to an uncovered one are left out.
 """
 from __future__ import annotations
