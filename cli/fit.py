@@ -63,6 +63,13 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
               help="Colour RGBA images are composited on and renders use; random: a new colour every training "
                    "step (RGBA images recomposited on it), the default colour for evaluation. [default: white "
                    "for transforms.json scenes, black for COLMAP]")
+@click.option("--normal-weight", type=float,
+              help="Planar primitives: weight of 2DGS's normal consistency (blended surfel normals against "
+                   "the rendered depth's normals; 2DGS: 0.05), on after 7000 of 30k iterations. [default: 0]")
+@click.option("--distortion-weight", type=float,
+              help="Planar primitives: weight of the depth distortion (blended variance of inverse depth along "
+                   "each ray; 2DGS's L1 form takes 1000 on DTU, 10-100 on Tanks and Temples), on after 3000 of "
+                   "30k iterations. [default: 0]")
 @click.option("--init", "init", type=click.Choice(["auto", "sfm", "random"]),
               help="Initial primitives: SfM points, random, or auto (SfM points when the scene has them). [default: auto]")
 @click.option("--seed", type=int, help="Random seed. [default: 0]")
@@ -74,7 +81,8 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--checkpoint-every", type=int, help="Checkpoint interval in iterations. [default: 1000]")
 @click.option("--scale-schedules/--no-scale-schedules", default=None,
               help="Runs shorter than 30k iterations shrink the 30k step schedules (refine start and "
-                   "interval, SH degree steps, learned-kernel freeze) in proportion and raise MCMC's "
+                   "interval, SH degree steps, learned-kernel freeze, planar geometry terms' starts) in "
+                   "proportion and raise MCMC's "
                    "noise by 30k / iters (at most x10). [default: scale]")
 @click.option("--short-run-lrs/--no-short-run-lrs", default=None,
               help="With --scale-schedules, also raise the LRs tuned for 30k iterations (log-scales, "
@@ -105,9 +113,11 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
 
     RUN/train_log.jsonl gets a JSON line every 100 iterations and at every training event, with
     the fields it (iteration), loss (training loss), psnr (PSNR in dB of that iteration's training
-    view), num (primitives), elapsed (training seconds so far, resumed runs included) and event
+    view), num (primitives), elapsed (training seconds so far, resumed runs included), event
     (null, or a message: a rollback and its halved step size, the loss check turned off, MCMC
-    growth held).
+    growth held), normal_loss (2DGS's normal consistency) and distortion_loss (the depth
+    distortion): with --primitive planar and --normal-weight or --distortion-weight, each term
+    unweighted and averaged over the step's views once it is on, else null.
     """
     if scene is None and not resume:
         raise click.UsageError("SCENE is required (unless --resume)")

@@ -66,15 +66,22 @@ def assert_same_training(a: dict, b: dict) -> None:
         assert float(diff.mean()) < 1e-4, (name, float(diff.mean()))
 
 
-@pytest.mark.parametrize("strategy", ["mcmc", "adc"])
-def test_two_processes_train_the_one_process_batch(scene, tmp_path, strategy):
+#: planar surfels with 2DGS's geometry terms, on after iteration 23 and 10 of 100 (7000 and 3000 of 30k)
+PLANAR_TERMS = ["--primitive", "planar", "--normal-weight", "0.05", "--distortion-weight", "10"]
+
+
+@pytest.mark.parametrize("strategy,iters,extra_flags", [("mcmc", 50, []), ("adc", 50, []), ("mcmc", 100, PLANAR_TERMS)],
+                         ids=["mcmc", "adc", "planar-geometry-terms"])
+def test_two_processes_train_the_one_process_batch(scene, tmp_path, strategy, iters, extra_flags):
     """MCMC: relocation, growth and noise drawn alike on both ranks; ADC (densifying every 5
-    iterations until 25 at this length): its screen-space gradient statistics summed over ranks."""
+    iterations until 25 at this length): its screen-space gradient statistics summed over ranks;
+    planar geometry terms: each rank's views' terms in its loss, their logged means summed."""
     runs = {}
     for name, extra in (("ddp", ["--nproc", "2"]), ("one", ["--batch-views", "2"])):
         runs[name] = tmp_path / name
-        res = subprocess.run(splatk("fit", scene, "--out", runs[name], "--iters", "50", "--strategy", strategy,
-                                    *FIT, *extra), env=env(), capture_output=True, text=True, timeout=300)
+        res = subprocess.run(splatk("fit", scene, "--out", runs[name], "--iters", iters, "--strategy", strategy,
+                                    *FIT, *extra, *extra_flags), env=env(), capture_output=True, text=True,
+                             timeout=300)
         assert res.returncode == 0, res.stderr
     ddp, one = prims(runs["ddp"]), prims(runs["one"])
     initial = 300 // 4  # random init: a quarter of the budget
@@ -85,6 +92,11 @@ def test_two_processes_train_the_one_process_batch(scene, tmp_path, strategy):
     # only rank 0 wrote: one log, every line once
     log = [json.loads(x)["it"] for x in (runs["ddp"] / "train_log.jsonl").read_text().splitlines()]
     assert log == sorted(set(log))
+    if extra_flags:  # the terms rank 0 logs are the whole batch's, as one process logs them
+        last = [json.loads((runs[n] / "train_log.jsonl").read_text().splitlines()[-1]) for n in ("ddp", "one")]
+        assert last[0]["it"] == last[1]["it"] == 100
+        for term in ("normal_loss", "distortion_loss"):
+            assert last[0][term] == pytest.approx(last[1][term], rel=1e-3), term
 
 
 def test_a_one_process_checkpoint_resumes_on_two_processes(scene, tmp_path):

@@ -14,6 +14,7 @@ from ..backends import Backend
 from ..colors import ColorModel, make_color_model
 from ..functional.planar import planar_in_front
 from ..functional.projection import quats_to_rotmats
+from ..functional.surfel_depth import GEOMETRY_CHANNELS, surfel_geometry_channels
 from ..kernels import Kernel, ViewContext, make_kernel
 from .base import PrimitiveModel
 from .volumetric import RenderResult, knn_mean_sq_dist
@@ -70,11 +71,13 @@ class PlanarModel(PrimitiveModel):
 
     # ---- rendering ----------------------------------------------------------------------
     def render(self, camera, background: torch.Tensor, sh_degree: int = 3, *,
-               backend: Backend, colors: torch.Tensor | None = None) -> RenderResult:
+               backend: Backend, colors: torch.Tensor | None = None, geometry: bool = False) -> RenderResult:
         """Render one camera with ``backend``'s ops; differentiable in every parameter.
         ``colors`` ([N, C]) replaces the colour model's output, as in ``SplatModel.render``.
         ``visible`` lists the drawn primitives (in front of the camera, see
-        :func:`~splatk.functional.planar.planar_in_front`) in index order."""
+        :func:`~splatk.functional.planar.planar_in_front`) in index order. ``geometry``: also
+        composite each surfel's normal and inverse-depth channels in the same rasteriser call
+        (on background 0), returned as ``RenderResult.geometry`` [H, W, 12]."""
         dev = self.prims["means"].device
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
@@ -91,7 +94,13 @@ class PlanarModel(PrimitiveModel):
         else:
             view = ViewContext(None, None, None, backend)
         profile = self.kernel.profile(vis, view)
+        background = background.to(dev)
+        channels = rgb.shape[-1]
+        if geometry:
+            rgb = torch.cat([rgb, surfel_geometry_channels(vis["means"], vis["quats"], viewmat).to(rgb.dtype)], -1)
+            background = torch.cat([background, background.new_zeros(GEOMETRY_CHANNELS)])
         out = backend.rasterize_planar(vis["means"], vis["quats"], scales, torch.sigmoid(vis["opacity_logits"]),
-                                       rgb, viewmat, K, camera.width, camera.height, profile,
-                                       background.to(dev))
-        return RenderResult(out.colors, out.alphas, idx)
+                                       rgb, viewmat, K, camera.width, camera.height, profile, background)
+        if not geometry:
+            return RenderResult(out.colors, out.alphas, idx)
+        return RenderResult(out.colors[..., :channels], out.alphas, idx, geometry=out.colors[..., channels:])

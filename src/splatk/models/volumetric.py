@@ -100,13 +100,15 @@ class SplatModel(PrimitiveModel):
 class RenderResult(NamedTuple):
     """image [H, W, 3], alpha [H, W, 1], visible [M] indices of the rendered primitives; for
     volumetric models also their pixel-space centres [M, 2] (gradient kept after backward) and
-    normalised conics [M, 3]."""
+    normalised conics [M, 3]; for planar models rendered with ``geometry=True`` the blended
+    surfel geometry channels [H, W, 12] (:mod:`splatk.functional.surfel_depth`)."""
 
     image: torch.Tensor
     alpha: torch.Tensor
     visible: torch.Tensor
     means2d: torch.Tensor | None = None
     conics: torch.Tensor | None = None
+    geometry: torch.Tensor | None = None
 
 
 def knn_mean_sq_dist(points: torch.Tensor, k: int = 3) -> torch.Tensor:

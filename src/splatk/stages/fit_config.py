@@ -348,6 +348,10 @@ RULES = [
     ("train.scales_lr_mult", "scales_lr_mult", float_range(0.0, None, lo_open=True)),
     ("train.snapshot_every", "snapshot_every", int_range(1)),
     ("train.divergence_factor", "divergence_factor", float_range(0.0)),
+    ("train.normal_weight", "normal_weight", float_range(0.0)),
+    ("train.normal_from", "normal_from", int_range(0)),
+    ("train.distortion_weight", "distortion_weight", float_range(0.0)),
+    ("train.distortion_from", "distortion_from", int_range(0)),
     ("train.strategy", "strategy", choice(*sorted(STRATEGIES))),
     ("train.batch_views", "batch_views", int_range(1, 256)),
     ("train.adc.densify_from", "densify_from", int_range(0)),
@@ -448,6 +452,10 @@ def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:
             raise option_error(name, value, f"needs about {value * train_bytes_per_primitive(cfg) / 2**30:.1f} GiB to train, "
                                 f"more than half of this machine's {memory_bytes() / 2**30:.0f} GiB",
                                 f"at most {cap:,} primitives fit here", sources.get(name))
+    for name in ("normal_weight", "distortion_weight"):
+        if cfg.primitive != "planar" and getattr(cfg.train, name) > 0:
+            raise option_error(name, getattr(cfg.train, name), "is a term of planar primitives (2DGS's surfels)",
+                               "add --primitive planar, or leave it at 0", sources.get(name))
     if cfg.train.strategy == "adc":
         if cfg.primitive != "volumetric":
             raise InputError(None, "--strategy adc (3DGS's density control) is for volumetric primitives",

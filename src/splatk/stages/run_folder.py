@@ -7,7 +7,7 @@ Layout::
     RUN/model.pt             final model (native format; `splatk export` converts it)
     RUN/fit.json             summary: iterations, wall time, primitives, events (NaN rollbacks),
                              test PSNR of the initial model, the auto-budget report
-    RUN/train_log.jsonl      loss / PSNR / primitive count every 100 iterations
+    RUN/train_log.jsonl      loss / PSNR / primitive count (planar geometry terms) every 100 iterations
 """
 from __future__ import annotations
 
@@ -82,7 +82,8 @@ class RunFolder:
         if info.it % 100 == 0 or info.event:
             self._log.write(json.dumps({"it": info.it, "loss": info.loss, "psnr": info.psnr,
                                         "num": info.num_primitives, "elapsed": round(info.elapsed, 3),
-                                        "event": info.event}) + "\n")
+                                        "event": info.event, "normal_loss": info.normal_loss,
+                                        "distortion_loss": info.distortion_loss}) + "\n")
             self._log.flush()
 
     def close_log(self) -> None:

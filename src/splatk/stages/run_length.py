@@ -16,7 +16,10 @@ from ..train.mcmc import MCMCConfig
 #: the paper's run length; the step-count schedules below are tuned for it
 FULL_ITERS = 30_000
 #: step-count schedules at 30k iterations: (value, smallest value when scaled to a shorter run)
-RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1)}
+RUN_LENGTH_SCHEDULES = {"refine_start": (500, 0), "refine_every": (100, 5), "sh_degree_interval": (1000, 1),
+                        "normal_from": (7000, 0), "distortion_from": (3000, 0)}
+#: the RUN_LENGTH_SCHEDULES that are TrainConfig fields (the others are MCMC's)
+TRAIN_SCHEDULES = ("sh_degree_interval", "normal_from", "distortion_from")
 #: ADC's step-count schedules at 30k iterations (3DGS): (value, smallest value when scaled)
 ADC_SCHEDULES = {"densify_from": (500, 0), "densify_until": (15_000, 1), "densify_every": (100, 5),
                  "opacity_reset_every": (3000, 10)}
@@ -72,7 +75,7 @@ def scale_schedules_to_run(cfg, keep: frozenset | set = frozenset()) -> dict:
     scaled = {}
     for key, (full, lo) in RUN_LENGTH_SCHEDULES.items():
         if key not in keep:
-            target = t if key == "sh_degree_interval" else t.mcmc
+            target = t if key in TRAIN_SCHEDULES else t.mcmc
             setattr(target, key, max(lo, round(full * s)))
             scaled[key] = getattr(target, key)
     if t.strategy == "adc":

@@ -27,6 +27,7 @@ from .guard import Guard
 from .losses import masked_mse, photometric_loss, regularisers
 from .mcmc import MCMCConfig
 from .optim import PrimitiveAdam
+from .planar_regularisers import GeometryTerms
 from .state import load_trainer_state, trainer_state
 from .strategies import make_strategy
 
@@ -88,6 +89,17 @@ class TrainConfig:
     #: every step renders on a random background colour, and RGBA train images are composited
     #: on the same colour (3DGS's --random_background), so that transparency is never free
     random_background: bool = False
+    #: planar primitives: weight of 2DGS's normal consistency (2DGS: 0.05), the blended surfel
+    #: normals against the normals of the rendered depth (train.planar_regularisers)
+    normal_weight: float = 0.0
+    #: ... on after this iteration (2DGS: 7000 of 30k; short runs scale it)
+    normal_from: int = 7000
+    #: planar primitives: weight of the depth distortion, the blended variance of inverse depth
+    #: along each ray (2DGS: 0, 1000 on DTU, 10 or 100 on Tanks and Temples; its term is the
+    #: L1 form, decision 0103)
+    distortion_weight: float = 0.0
+    #: ... on after this iteration (2DGS: 3000 of 30k; short runs scale it)
+    distortion_from: int = 3000
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -110,6 +122,9 @@ class StepInfo:
     elapsed: float
     progress: float
     event: str | None = None
+    #: planar geometry terms (unweighted, mean over the step's views); None while a term is off
+    normal_loss: float | None = None
+    distortion_loss: float | None = None
 
 
 class Trainer:
@@ -141,6 +156,10 @@ class Trainer:
         self.mcmc_gen = torch.Generator(device=self.device).manual_seed(config.seed + 1)
         self.view_queue: list[int] = []
         self.strategy = make_strategy(config, self.extent)
+        self.geometry_terms = GeometryTerms(config.normal_weight, config.normal_from, config.distortion_weight,
+                                            config.distortion_from)
+        if (config.normal_weight > 0 or config.distortion_weight > 0) and getattr(model, "primitive", None) != "planar":
+            raise ValueError("normal_weight and distortion_weight are terms of planar models")
         self.guard = Guard(self)
         self.build_optimizers()
         self.targets = [c.image_float(self.device) for c in scene.train]
@@ -200,13 +219,21 @@ class Trainer:
         # every rank draws the batch's backgrounds in the batch's order, so a random background
         # stays the one-process run's whatever share a rank renders
         drawn = [self._background_and_target(vi) for vi in views]
-        renders, targets, photo_loss = [], [], 0.0
+        renders, targets, photo_loss, terms, geo_sum = [], [], 0.0, {}, 0.0
+        # planar models composite their geometry channels only while a geometry term is on
+        geometry = {"geometry": True} if self.geometry_terms.wanted(self.it) else {}
         for vi in mine:
             background, target = drawn[views.index(vi)]
-            out = self.model.render(self.scene.train[vi], background, sh_degree=self.sh_degree(),
-                                    backend=self.backend)
+            cam = self.scene.train[vi]
+            out = self.model.render(cam, background, sh_degree=self.sh_degree(), backend=self.backend, **geometry)
             photo_loss = photo_loss + photometric_loss(out.image, target, self.backend, self.cfg.lambda_dssim,
                                                        self.masks[vi])
+            if geometry:
+                geo_loss, values = self.geometry_terms(self.it, out.geometry, out.alpha, cam.K)
+                photo_loss = photo_loss + geo_loss
+                geo_sum = geo_sum + geo_loss.detach()
+                for name, value in values.items():
+                    terms[name] = terms.get(name, 0.0) + value.detach()
             renders.append(out)
             targets.append(target)
         if len(views) > 1:
@@ -219,11 +246,16 @@ class Trainer:
             # the summed gradients are the one-process batch's: each rank adds 1/N of the
             # regularisers; the loss every rank judges (NaN, rollbacks) is the whole batch's
             loss = photo_loss + reg / self.world.size
-            photo_sum, mse = self.world.sum_values([photo_loss.detach(), mse], self.device)
+            photo_sum, mse, geo_sum, *term_sums = self.world.sum_values(
+                [photo_loss.detach(), mse, geo_sum, *terms.values()], self.device)
+            terms = dict(zip(terms, term_sums))
             loss_value = photo_sum + float(reg.detach())
         else:
             loss = photo_loss + reg
             loss_value = float(loss.detach())
+        # the guard judges the loss without the geometry terms: they start at a set iteration,
+        # and the step up in the loss they bring then is no divergence
+        guarded_value = loss_value - float(geo_sum) / len(views)
         if not math.isfinite(loss_value):
             event = self.guard.after_nan_loss()
         else:
@@ -243,7 +275,7 @@ class Trainer:
                 self.net_opt.step()
             with torch.no_grad():
                 self.model.prims["quats"].data = torch.nn.functional.normalize(self.model.prims["quats"].data, dim=-1)
-            event = self.guard.after_step(loss_value)
+            event = self.guard.after_step(guarded_value)
             if event is None:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
                 event = self._note_growth_held()
@@ -252,9 +284,10 @@ class Trainer:
         step_seconds = time.perf_counter() - t0
         # one clock for every rank: progress-based schedules and time budgets must agree
         self.elapsed += self.world.rank0_value(step_seconds, self.device) if self.world.distributed else step_seconds
+        terms = {name: float(value) / len(views) for name, value in terms.items()}
         return StepInfo(
             self.it, self.cfg.iters, loss_value, -10 * math.log10(max(mse, 1e-10)),
-            self.model.num_primitives, self.elapsed, self.progress(), event,
+            self.model.num_primitives, self.elapsed, self.progress(), event, **terms,
         )
 
     def _background_and_target(self, vi: int) -> tuple[torch.Tensor, torch.Tensor]:
