@@ -67,6 +67,19 @@ def _table_coords(x, G: tl.constexpr):
 
 
 @triton.jit
+def _table_corners(un, vn, g, extras_ptr, E, inside, AUX: tl.constexpr):
+    """The four table entries around (un, vn), their flat index and the bilinear weights."""
+    iu, fu = _table_coords(un, AUX)
+    iv, fv = _table_coords(vn, AUX)
+    base = g * E + iv * AUX + iu
+    t00 = tl.load(extras_ptr + base, mask=inside, other=0.0)
+    t01 = tl.load(extras_ptr + base + 1, mask=inside, other=0.0)
+    t10 = tl.load(extras_ptr + base + AUX, mask=inside, other=0.0)
+    t11 = tl.load(extras_ptr + base + AUX + 1, mask=inside, other=0.0)
+    return base, fu, fv, t00, t01, t10, t11
+
+
+@triton.jit
 def _value(un, vn, g, extras_ptr, E, inside, KIND: tl.constexpr, AUX: tl.constexpr):
     env = tl.exp(-4.5 * (un * un + vn * vn))
     if KIND == 0:
@@ -74,13 +87,7 @@ def _value(un, vn, g, extras_ptr, E, inside, KIND: tl.constexpr, AUX: tl.constex
     elif KIND == 1:
         w = env * _waves(un, g, extras_ptr, E, 0, AUX) * _waves(vn, g, extras_ptr, E, 1, AUX)
     else:
-        iu, fu = _table_coords(un, AUX)
-        iv, fv = _table_coords(vn, AUX)
-        base = g * E + iv * AUX + iu
-        t00 = tl.load(extras_ptr + base, mask=inside, other=0.0)
-        t01 = tl.load(extras_ptr + base + 1, mask=inside, other=0.0)
-        t10 = tl.load(extras_ptr + base + AUX, mask=inside, other=0.0)
-        t11 = tl.load(extras_ptr + base + AUX + 1, mask=inside, other=0.0)
+        base, fu, fv, t00, t01, t10, t11 = _table_corners(un, vn, g, extras_ptr, E, inside, AUX)
         w = env * ((t00 * (1.0 - fu) + t01 * fu) * (1.0 - fv) + (t10 * (1.0 - fu) + t11 * fu) * fv)
     return tl.where(inside, w, 0.0), env
 
@@ -154,13 +161,7 @@ def image_bwd_kernel(means_ptr, chol_ptr, colors_ptr, extras_ptr, bbox_ptr, tile
                 v_un += v_w0 * a0 * -s0 * 3.141592653589793 * f0
                 v_vn += v_w1 * a1 * -s1 * 3.141592653589793 * f1
         else:
-            iu, fu = _table_coords(un, AUX)
-            iv, fv = _table_coords(vn, AUX)
-            base = g * E + iv * AUX + iu
-            t00 = tl.load(extras_ptr + base, mask=inside, other=0.0)
-            t01 = tl.load(extras_ptr + base + 1, mask=inside, other=0.0)
-            t10 = tl.load(extras_ptr + base + AUX, mask=inside, other=0.0)
-            t11 = tl.load(extras_ptr + base + AUX + 1, mask=inside, other=0.0)
+            base, fu, fv, t00, t01, t10, t11 = _table_corners(un, vn, g, extras_ptr, E, inside, AUX)
             v_env = v_w * ((t00 * (1.0 - fu) + t01 * fu) * (1.0 - fv) + (t10 * (1.0 - fu) + t11 * fu) * fv)
             v_s = v_w * env
             tl.atomic_add(g_extras_ptr + base, v_s * (1.0 - fu) * (1.0 - fv), mask=inside)

@@ -17,7 +17,7 @@ import triton.language as tl
 from .planar_cpu import planar_bboxes
 from .planar_torch import planar_visible
 from .triton_binning import bin_boxes
-from .triton_raster import composite_backward_start, composite_backward_step, pixel_block
+from .triton_raster import composite_backward_start, composite_backward_step, composite_forward_step, pixel_block
 from .types import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE, PlanarProfile, RasterOutput
 
 KIND_CODES = {"gaussian_surfel": 0, "grid": 1}
@@ -107,17 +107,9 @@ def planar_fwd_kernel(
         u, v, bu, bv, c2, x, y, hu0, hu1, hu2, hv0, hv1, hv2 = _uv(g, px, py, M_ptr)
         inside = (u * u + v * v) <= 1.0
         k = _kernel_value(u, v, g, table_ptr, inside, KIND, G, HALF_S2)
-        alpha = tl.minimum(A_MAX, tl.load(opac_ptr + g) * k)
-        valid = alive & inside & (alpha >= A_MIN)
-        t_next = T * (1.0 - alpha)
-        stop = valid & (t_next < T_STOP)
-        blend = valid & (t_next >= T_STOP)
-        w = tl.where(blend, alpha * T, 0.0)
-        col = tl.load(colors_ptr + g * C + ch, mask=ch_ok, other=0.0)
-        acc += w[:, None] * col[None, :]
-        T = tl.where(blend, t_next, T)
-        n_contrib = tl.where(blend, i - start + 1, n_contrib)
-        alive = alive & (stop == 0)
+        T, acc, alive, n_contrib = composite_forward_step(
+            k, inside, g, i - start + 1, T, acc, alive, n_contrib, opac_ptr, colors_ptr, ch, ch_ok, C,
+            A_MAX, A_MIN, T_STOP)
         any_alive = tl.max(alive.to(tl.int32), axis=0)
         i += 1
 

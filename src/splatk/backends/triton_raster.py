@@ -75,6 +75,28 @@ def _profile(r2, g, params_ptr, inside, KIND: tl.constexpr, K: tl.constexpr, GS2
 
 
 @triton.jit
+def composite_forward_step(value, inside, g, count, T, acc, alive, n_contrib, opac_ptr, colors_ptr, ch, ch_ok, C,
+                           A_MAX: tl.constexpr, A_MIN: tl.constexpr, T_STOP: tl.constexpr):
+    """One primitive ``g`` of the front-to-back walk, drawn with kernel value ``value`` [P] where
+    ``inside``: blends its colour into ``acc`` and returns the transmittance, the accumulator,
+    the pixels still alive (3DGS's early termination) and each pixel's contributor count
+    (``count``: g's place in the tile's list, from 1). Shared by the splat and the planar
+    rasteriser."""
+    alpha = tl.minimum(A_MAX, tl.load(opac_ptr + g) * value)
+    valid = alive & inside & (alpha >= A_MIN)
+    t_next = T * (1.0 - alpha)
+    stop = valid & (t_next < T_STOP)
+    blend = valid & (t_next >= T_STOP)
+    w = tl.where(blend, alpha * T, 0.0)
+    col = tl.load(colors_ptr + g * C + ch, mask=ch_ok, other=0.0)
+    acc += w[:, None] * col[None, :]
+    T = tl.where(blend, t_next, T)
+    n_contrib = tl.where(blend, count, n_contrib)
+    alive = alive & (stop == 0)
+    return T, acc, alive, n_contrib
+
+
+@triton.jit
 def rasterize_fwd_kernel(
     means_ptr, conics_ptr, opac_ptr, colors_ptr, params_ptr, bg_ptr,
     tile_offsets_ptr, flat_ids_ptr,
@@ -103,17 +125,9 @@ def rasterize_fwd_kernel(
         dx, dy, ca, cb, cc, r2 = _r2(g, px, py, means_ptr, conics_ptr)
         inside = (r2 < 1.0) & (r2 >= 0.0)
         prof = _profile(r2, g, params_ptr, inside, KIND, K, GS2, TS2)
-        alpha = tl.minimum(A_MAX, tl.load(opac_ptr + g) * prof)
-        valid = alive & inside & (alpha >= A_MIN)
-        t_next = T * (1.0 - alpha)
-        stop = valid & (t_next < T_STOP)
-        blend = valid & (t_next >= T_STOP)
-        w = tl.where(blend, alpha * T, 0.0)
-        col = tl.load(colors_ptr + g * C + ch, mask=ch_ok, other=0.0)
-        acc += w[:, None] * col[None, :]
-        T = tl.where(blend, t_next, T)
-        n_contrib = tl.where(blend, i - start + 1, n_contrib)
-        alive = alive & (stop == 0)
+        T, acc, alive, n_contrib = composite_forward_step(
+            prof, inside, g, i - start + 1, T, acc, alive, n_contrib, opac_ptr, colors_ptr, ch, ch_ok, C,
+            A_MAX, A_MIN, T_STOP)
         any_alive = tl.max(alive.to(tl.int32), axis=0)
         i += 1
 
