@@ -7,7 +7,7 @@ every other setting default, under one of two protocols:
   (``--budget-bytes 1MB``: the primitive count follows from each kernel's bytes).
 
     python benchmarks/learned_validation.py OUT [--protocol 7k|30k] [--scenes juicebox_frontal,...]
-        [--kernels gaussian,learned,learned-kauto] [--jobs 2]
+        [--kernels gaussian,learned,learned-kauto] [--seed 0] [--jobs 2]
 
 Kernel ``learned-kauto`` is the learned kernel with ``--k auto``.
 
@@ -16,7 +16,8 @@ Forward-facing scenes (``*_frontal``) are made under OUT/scenes by
 others are read from ``../shared/data``. Each (scene, kernel) is one ``splatk fit SCENE --out
 OUT/runs/PROTOCOL/SCENE_KERNEL --kernel KERNEL ... --threads 1`` and one ``splatk eval --metrics
 psnr --json``; a run folder that already has its ``eval.json`` is not run again, so the grid
-resumes. Prints the table and writes OUT/learned_validation[_30k].json.
+resumes. Prints the table and writes OUT/learned_validation[_30k][_seedN].json (runs of a seed
+other than 0 under OUT/runs/PROTOCOL_seedN/).
 """
 from __future__ import annotations
 
@@ -58,13 +59,13 @@ def scene_path(name: str, out: Path) -> Path:
     return made
 
 
-def run_one(scene: str, kernel: str, protocol: str, out: Path) -> dict:
-    run = out / "runs" / protocol / f"{scene}_{kernel}"
+def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path) -> dict:
+    run = out / "runs" / (protocol if seed == 0 else f"{protocol}_seed{seed}") / f"{scene}_{kernel}"
     result = run / "eval.json"
     if not result.exists():
         env = dict(os.environ, OMP_NUM_THREADS="1")
         subprocess.run(["splatk", "fit", str(scene_path(scene, out)), "--out", str(run), "--overwrite",
-                        *KERNELS[kernel], *PROTOCOLS[protocol], "--threads", "1", "-q"], check=True, env=env)
+                        *KERNELS[kernel], *PROTOCOLS[protocol], "--seed", str(seed), "--threads", "1", "-q"], check=True, env=env)
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json"], check=True,
                                    env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)
@@ -85,6 +86,7 @@ def main() -> None:
     ap.add_argument("--scenes", default=",".join(TUNING + VALIDATION))
     ap.add_argument("--kernels", default="gaussian,learned",
                     help=f"comma-separated, of {', '.join(KERNELS)}")
+    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args()
     kernels, scenes = args.kernels.split(","), args.scenes.split(",")
@@ -93,7 +95,7 @@ def main() -> None:
         ap.error(f"unknown kernel(s) {', '.join(unknown)}; choose from {', '.join(KERNELS)}")
     cells = [(s, k) for s in scenes for k in kernels]
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda c: run_one(*c, args.protocol, args.out), cells))
+        rows = list(pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out), cells))
     learned = [k for k in kernels if k != "gaussian"]
     print(f"{'scene':<18} {'set':<10} " + " ".join(f"{k:>13}" for k in kernels)
           + "".join(f"  {k + ' - gaussian':>24}" for k in learned if "gaussian" in kernels))
@@ -103,8 +105,9 @@ def main() -> None:
                        for k in learned if "gaussian" in got)
         print(f"{scene:<18} {got[kernels[0]]['set']:<10} "
               + " ".join(f"{got[k]['test_psnr']:>13.2f}" for k in kernels) + gaps)
-    doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "rows": rows}
-    name = "learned_validation.json" if args.protocol == "7k" else f"learned_validation_{args.protocol}.json"
+    doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed, "rows": rows}
+    name = "learned_validation" + ("" if args.protocol == "7k" else f"_{args.protocol}") \
+        + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"
     (args.out / name).write_text(json.dumps(doc, indent=1))
 
 
