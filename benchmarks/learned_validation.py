@@ -9,7 +9,7 @@ every other setting default, under one of two protocols:
     python benchmarks/learned_validation.py OUT [--protocol 7k|30k] [--scenes juicebox_frontal,...]
         [--kernels gaussian,learned,learned-kauto] [--seed 0] [--jobs 2]
 
-Kernel ``learned-kauto`` is the learned kernel with ``--k auto``.
+Kernel ``learned-kauto`` is the learned kernel with ``--k auto``, ``learned-k4`` with ``--k 4``.
 
 Forward-facing scenes (``*_frontal``) are made under OUT/scenes by
 ``benchmarks/make_frontal_scene.py`` from the shared 360-degree capture of the same name; the
@@ -46,6 +46,8 @@ KERNELS = {
     "gaussian": ["--kernel", "gaussian"],
     "learned": ["--kernel", "learned"],
     "learned-kauto": ["--kernel", "learned", "--k", "auto"],
+    "learned-k4": ["--kernel", "learned", "--k", "4"],
+    "learned-k8": ["--kernel", "learned", "--k", "8"],
 }
 
 
