@@ -32,6 +32,7 @@ import torch
 
 from ..functional.planar import bilinear, gaussian_surfel, planar_in_front
 from ..functional.projection import quats_to_rotmats
+from ..functional.surfel_depth import pixel_centres
 from .types import ALPHA_MAX, ALPHA_MIN, PLANAR_PROFILE_KINDS, T_MIN, PlanarProfile, RasterOutput
 
 #: the dense reference holds ~20 float tensors of this many pairs: ~2 GB in float32 at the cap
@@ -130,9 +131,7 @@ def rasterize_planar(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
     dtype = colors.dtype
     order, M = planar_visible(means, quats, scales, viewmat, K)
     dev = means.device
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype, device=dev) + 0.5,
-                            torch.arange(width, dtype=means.dtype, device=dev) + 0.5, indexing="ij")
-    pix = torch.stack([xs, ys], -1).reshape(-1, 2)  # [HW, 2]
+    pix = pixel_centres(width, height, means.dtype, dev).reshape(-1, 2)  # [HW, 2]
     hw, m = pix.shape[0], order.numel()
     if hw * m > MAX_DENSE_PAIRS:
         raise ValueError(f"the dense planar reference would build {hw * m:,} (pixel, splat) pairs "

@@ -52,12 +52,17 @@ def surfel_geometry_channels(means: torch.Tensor, quats: torch.Tensor, viewmat: 
     return torch.cat([normals, q, qq], -1)
 
 
+def pixel_centres(width: int, height: int, dtype: torch.dtype, device) -> torch.Tensor:
+    """[H, W, 2] pixel-centre coordinates (x, y), integer + 0.5, the rasterisers' convention."""
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype, device=device) + 0.5,
+                            torch.arange(width, dtype=dtype, device=device) + 0.5, indexing="ij")
+    return torch.stack([xs, ys], -1)
+
+
 def pixel_rays(K: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """[H, W, 3] rays ``K^-1 (x, y, 1)`` through the pixel centres (integer + 0.5), z = 1."""
-    dev, dtype = K.device, K.dtype
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype, device=dev) + 0.5,
-                            torch.arange(width, dtype=dtype, device=dev) + 0.5, indexing="ij")
-    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1)
+    """[H, W, 3] rays ``K^-1 (x, y, 1)`` through the pixel centres, z = 1."""
+    pix = pixel_centres(width, height, K.dtype, K.device)
+    pix = torch.cat([pix, torch.ones_like(pix[..., :1])], -1)
     return pix @ torch.linalg.inv(K).T
 
 
