@@ -103,3 +103,13 @@ def test_screen_radii_of_a_circle_and_an_ellipse():
     assert screen_radii(torch.tensor([[1 / 16, 0.0, 1 / 16]]), 3.0).item() == pytest.approx(4.0)
     # an axis-aligned ellipse with half-axes 2 and 5 px; a 1-sigma support reports 3x as 3DGS measures
     assert screen_radii(torch.tensor([[1 / 4, 0.0, 1 / 25]]), 1.0).item() == pytest.approx(15.0)
+
+
+def test_adc_strategy_trains_without_the_mcmc_regularisers_unless_given():
+    from splatk.stages.fit_config import fit_config_from_options
+    mcmc, _ = fit_config_from_options({"iters": 100})
+    assert mcmc.train.opacity_reg > 0 and mcmc.train.scale_reg > 0
+    adc, _ = fit_config_from_options({"iters": 100, "strategy": "adc"})
+    assert adc.train.opacity_reg == 0.0 and adc.train.scale_reg == 0.0
+    given, _ = fit_config_from_options({"iters": 100, "strategy": "adc", "scale_reg": 0.02})
+    assert given.train.scale_reg == 0.02 and given.train.opacity_reg == 0.0

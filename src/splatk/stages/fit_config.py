@@ -186,6 +186,11 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         target = (cfg if key in _FIT_FIELDS else cfg.train.mcmc if key in MCMC_FIELDS
                   else cfg.train.adc if key in ADC_FLAT else cfg.train)
         setattr(target, key, value)
+    if cfg.train.strategy == "adc" and base is None:
+        # 3DGS trains without DBS / 3DGS-MCMC's opacity and scale regularisers
+        for key in ("opacity_reg", "scale_reg"):
+            if key not in given:
+                setattr(cfg.train, key, 0.0)
     if cfg.train.strategy == "adc" and cfg.train.adc.cap_max is None:
         # 3DGS has no cap; this one only keeps a run inside the machine's memory
         cfg.train.adc.cap_max = max_budget(cfg)
