@@ -1,7 +1,7 @@
 """What the learned kernel's training does at and after its networks unfreeze.
 
     python benchmarks/learned_unfreeze_probe.py SCENE OUT.json [--iters 7000] [--stop 3000]
-        [--downscale 2] [--budget 20000] [--k 2] [--every 100] [--threads 1]
+        [--downscale 2] [--budget 20000] [--k 2] [--sh-degree 3] [--every 100] [--threads 1]
         [--kernel-option name=value ...] [--train-option name=value ...]
 
 Builds the trainer as ``splatk fit SCENE --kernel learned`` does (short-run schedules and learning
@@ -12,7 +12,8 @@ to OUT.json:
 * per parameter group, the RMS of one Adam update (per-primitive tensors) and, for the two
   networks, the gradient norm, the update norm and the drift from the pretrained weights;
 * the latents z3d (RMS, 99th percentile of the norm) and the 2D latents z2d (RMS);
-* the profile each primitive ends with on ``--views`` train views: mean d(0) and d(r=1), the share
+* the profile each primitive ends with on ``--views`` train views: mean d(0) and d(r=1), the mean
+  profile over d(0) at the k radii, the share that rises anywhere inside the support, the share
   whose profile rises outwards (d(1) > d(0)), the share that fills its support to the edge
   (d(1) > 0.5), and the view-dependence (per primitive std of d(0), d(1) over those views);
 * scales (median log scale relative to the extent), opacities (mean, share dead), and MCMC's
@@ -32,7 +33,8 @@ from splatk.data import load_scene
 from splatk.functional.projection import project_ellipsoids
 from splatk.kernels.base import ViewContext
 from splatk.stages.autobudget import render_psnr
-from splatk.stages.fit import FitConfig, boost_short_run_lrs, build_model, scale_schedules_to_run
+from splatk.stages.fit import FitConfig, build_model
+from splatk.stages.run_length import boost_short_run_lrs, scale_schedules_to_run
 from splatk.train.trainer import Trainer
 
 
@@ -60,17 +62,19 @@ def profile_stats(model, cameras) -> dict:
     n = model.num_primitives
     d0 = torch.full((len(cameras), n), float("nan"))
     d1 = torch.full((len(cameras), n), float("nan"))
-    z2d_sq = []
+    z2d_sq, shapes, rising_inside = [], [], []
     for i, cam in enumerate(cameras):
         proj = project_ellipsoids(model.prims["means"], model.prims["quats"], model.scales,
                                   cam.world_to_cam, cam.K, cam.width, cam.height,
                                   support_sigmas=kernel.support_sigmas)
         idx = torch.nonzero(proj.visible).flatten()
-        view = ViewContext(proj.means_cam[idx], model.scales[idx], proj.rotmats_cam[idx], fused=False)
+        view = ViewContext(proj.means_cam[idx], model.scales[idx], proj.rotmats_cam[idx])
         z3d = model.prims["z3d"][idx] if "z3d" in model.prims else None
         z2d = kernel.proj(kernel.encode(z3d, view))
         table = kernel.samples(z2d)  # the table the rasteriser draws
         d0[i, idx], d1[i, idx] = table[:, 0], table[:, -1]
+        shapes.append(table / table[:, :1].clamp_min(1e-6))
+        rising_inside.append((table[:, 1:] > table[:, :-1] + 1e-3).any(1).float())
         z2d_sq.append((z2d ** 2).mean())
     seen = ~torch.isnan(d0)
     v0, v1 = d0[seen], d1[seen]
@@ -84,7 +88,11 @@ def profile_stats(model, cameras) -> dict:
     return {"d0_mean": float(v0.mean()), "d1_mean": float(v1.mean()),
             "rising_share": float((v1 > v0).float().mean()), "filled_share": float((v1 > 0.5).float().mean()),
             "d0_view_std": view_std(d0), "d1_view_std": view_std(d1),
-            "z2d_rms": float(torch.stack(z2d_sq).mean().sqrt())}
+            "z2d_rms": float(torch.stack(z2d_sq).mean().sqrt()),
+            # the mean profile, each sample over the primitive's d(0), and the share of profiles
+            # that rise somewhere inside the support (k > 2 only)
+            "shape_mean": [round(float(v), 4) for v in torch.cat(shapes).mean(0)],
+            "rising_inside_share": float(torch.cat(rising_inside).mean())}
 
 
 def main() -> None:
@@ -96,6 +104,7 @@ def main() -> None:
     ap.add_argument("--downscale", type=float, default=2.0)
     ap.add_argument("--budget", type=int, default=20000)
     ap.add_argument("--k", type=int, default=2)
+    ap.add_argument("--sh-degree", type=int, default=3)
     ap.add_argument("--every", type=int, default=100)
     ap.add_argument("--views", type=int, default=4, help="train views the profiles are probed on")
     ap.add_argument("--threads", type=int, default=1)
@@ -105,7 +114,7 @@ def main() -> None:
     a = ap.parse_args()
 
     torch.set_num_threads(a.threads)
-    cfg = FitConfig(kernel="learned", downscale=a.downscale, threads=a.threads)
+    cfg = FitConfig(kernel="learned", downscale=a.downscale, threads=a.threads, sh_degree=a.sh_degree)
     cfg.kernel_options = {"k": a.k, **_options(a.kernel_option)}
     cfg.train.iters, cfg.train.budget = a.iters, a.budget
     for name, value in _options(a.train_option).items():
@@ -201,7 +210,7 @@ def main() -> None:
                                                "rising_share", "z3d_rms", "event")}), flush=True)
         write(None)
 
-    write(render_psnr(trainer.model, scene.test, scene.background, cfg.train.backend))
+    write(render_psnr(trainer.model, scene.test, scene.background, trainer.backend))
 
 
 if __name__ == "__main__":

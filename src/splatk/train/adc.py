@@ -189,6 +189,9 @@ class ADCStrategy(Strategy):
         rows["log_scales"] = (model.prims["log_scales"].data[split] - math.log(0.8 * copies)).repeat(copies, 1)
         return rows
 
+    def raised_loss(self) -> bool:
+        return bool(self.last_stats.get("opacity_reset"))
+
     def reset_opacity(self, model, opt: PrimitiveAdam) -> None:
         """Cap every opacity at 0.01 and clear its Adam moments (3DGS ``reset_opacity``)."""
         logits = model.prims["opacity_logits"]

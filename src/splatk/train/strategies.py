@@ -32,6 +32,11 @@ class Strategy:
         """Edit the model's primitives (through ``opt``, which keeps Adam's moments in step)."""
         raise NotImplementedError
 
+    def raised_loss(self) -> bool:
+        """True when the last :meth:`step` raised the loss on purpose (3DGS's opacity reset):
+        the trainer's guard then judges the loss afresh instead of rolling the step back."""
+        return False
+
     def state_dict(self) -> dict:
         """Statistics a checkpoint must keep for a resume to continue exactly."""
         return {}

@@ -278,6 +278,8 @@ class Trainer:
             event = self.guard.after_step(guarded_value)
             if event is None:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
+                if self.strategy.raised_loss():
+                    self.guard.reset_loss_stats()  # the jump is the strategy's, not a divergence
                 event = self._note_growth_held()
                 self.guard.note_step()
         mse = mse / len(views)
