@@ -2,7 +2,7 @@
 
     python benchmarks/learned_unfreeze_probe.py SCENE OUT.json [--iters 7000] [--stop 3000]
         [--downscale 2] [--budget 20000] [--k 2] [--sh-degree 3] [--every 100] [--threads 1]
-        [--kernel-option name=value ...] [--train-option name=value ...]
+        [--kernel-option name=value ...] [--train-option name=value ...] [--keep-net proj|dec]
 
 Builds the trainer as ``splatk fit SCENE --kernel learned`` does (short-run schedules and learning
 rates included; ``--no-short-run-lrs`` keeps the 30k ones) and, every ``--every`` iterations, writes
@@ -22,6 +22,7 @@ to OUT.json:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -109,6 +110,10 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=4, help="train views the profiles are probed on")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-short-run-lrs", action="store_true")
+    ap.add_argument("--keep-net", choices=("proj", "dec"), default=None,
+                    help="keep this network at its pretrained weights (the other trains)")
+    ap.add_argument("--detach-geometry", action="store_true",
+                    help="no gradient from Phi_proj's inputs into the means, scales and rotations")
     ap.add_argument("--kernel-option", action="append", default=[])
     ap.add_argument("--train-option", action="append", default=[])
     a = ap.parse_args()
@@ -127,6 +132,16 @@ def main() -> None:
     model = build_model(scene, cfg)
     trainer = Trainer(scene, model, cfg.train)
     kernel = trainer.model.kernel
+    if a.keep_net:  # Adam skips parameters that get no gradient
+        for p in getattr(kernel, a.keep_net).parameters():
+            p.requires_grad_(False)
+    if a.detach_geometry:
+        encode = kernel.encode
+
+        def detached_encode(z3d, view):
+            return encode(z3d, dataclasses.replace(view, means_cam=view.means_cam.detach(),
+                                                   scales=view.scales.detach(), rotmats_cam=view.rotmats_cam.detach()))
+        kernel.encode = detached_encode
     probe_cams = scene.train[:: max(1, len(scene.train) // a.views)][: a.views]
     nets = {"proj": list(kernel.proj.parameters()), "dec": list(kernel.dec.parameters())}
     start = {k: [p.detach().clone() for p in ps] for k, ps in nets.items()}

@@ -33,3 +33,32 @@ def test_short_learned_fit_raises_test_psnr():
     assert after > before + 3.0, (before, after)
     assert any(not torch.equal(net0[k], v) for k, v in trainer.model.kernel.state_dict().items())
     assert trainer.model.prims["z3d"].abs().sum() > 0
+
+
+def test_phi_proj_takes_its_own_learning_rate_and_a_checkpoint_keeps_the_moments():
+    """proj_lr_mult scales Phi_proj's Adam rate only; a network optimiser saved with one group
+    (older checkpoints) loads into the two groups with every moment in place."""
+    import copy
+
+    from splatk.train.state import _regrouped
+
+    scene = synthetic_scene(num_views=6)
+    torch.manual_seed(0)
+    model = SplatModel.from_points(scene.points, scene.point_colors, kernel="learned", color="sh",
+                                   kernel_options={"freeze_iters": 2, "proj_lr_mult": 0.1},
+                                   color_options={"sh_degree": 0})
+    trainer = Trainer(scene, model, TrainConfig(iters=6, budget=100, backend="torch", seed=0))
+    proj0 = [p.detach().clone() for p in model.kernel.proj.parameters()]
+    trainer.run()
+    proj_group, dec_group = trainer.net_opt.param_groups
+    assert dec_group["lr"] > 0 and abs(proj_group["lr"] - 0.1 * dec_group["lr"]) < 1e-12
+    assert any(not torch.equal(a, b) for a, b in zip(proj0, trainer.model.kernel.proj.parameters()))
+    # one group, as a checkpoint of the previous layout holds it
+    saved = copy.deepcopy(trainer.net_opt.state_dict())
+    saved["param_groups"] = [{**saved["param_groups"][1], "params": [i for g in saved["param_groups"]
+                                                                   for i in g["params"]]}]
+    regrouped = _regrouped(saved, trainer.net_opt)
+    assert [len(g["params"]) for g in regrouped["param_groups"]] == [len(proj_group["params"]),
+                                                                       len(dec_group["params"])]
+    trainer.net_opt.load_state_dict(regrouped)
+    assert [g["lr_mult"] for g in trainer.net_opt.param_groups] == [0.1, 1.0]

@@ -73,6 +73,12 @@ class Kernel(nn.Module):
         """LR of the global networks at iteration ``it`` / progress in [0, 1] (0 = frozen)."""
         return 0.0
 
+    def network_groups(self) -> list[tuple[list[torch.nn.Parameter], float]]:
+        """The global networks' parameters as (parameters, multiplier of
+        :meth:`network_learning_rate`) groups, one Adam group each."""
+        params = list(self.parameters())
+        return [(params, 1.0)] if params else []
+
     @classmethod
     def scale_to_run(cls, options: dict, factor: float, keep=frozenset(), schedules: bool = True,
                      lrs: bool = True) -> dict:

@@ -65,6 +65,8 @@ EDGE_MAX = 0.25
 #: the scale regulariser's weight on this kernel's scales: its 1-sigma support over the
 #: Gaussian's 3 (see ``scale_reg_weight``)
 SCALE_REG_WEIGHT = 1.0 / 3.0
+#: Phi_proj's learning rate over the networks' rate for k > 2 (see ``proj_lr_mult``)
+PROJ_LR_MULT_ABOVE_K2 = 0.1
 #: options that fix the networks' shapes; a weights file must match them
 ARCH_OPTIONS = ("latent_dim", "latent2d_dim", "proj_width", "dec_width", "proj_inputs")
 
@@ -163,6 +165,11 @@ class LearnedKernel(Kernel):
             freeze (paper: 1.6e-4 -> 1.6e-6).
         net_lr_mult: multiplies the network LR; None = 10 without pretrained weights (paper
             Sec. 5.4, "no pre-train"), else 1.
+        proj_lr_mult: multiplies Phi_proj's LR on top of that (Phi_dec keeps the networks' LR).
+            None: 1 (the paper's rate) for k = 2, PROJ_LR_MULT_ABOVE_K2 for k > 2. At the paper's
+            rate a k = 8 fit diverged once Phi_proj had drifted 12-15 % from its pretrained
+            weights, whatever Phi_dec did; with Phi_proj at 1/10 it trained on
+            (docs/decisions/0104-learned-kernel-proj-rate.md).
         z3d_lr: Adam LR of the per-primitive latents (the paper does not give one). 1e-4:
             after pretraining a unit change of z3d moves the logits of d(0) + d(1) by 1-2.5,
             so 1e-4 lets a latent travel a few units over a 30k-iteration fit. Measured on
@@ -221,6 +228,7 @@ class LearnedKernel(Kernel):
         z3d_lr: float = 1e-4,
         weights: str | None = "default",
         proj_precision: str = "auto",
+        proj_lr_mult: float | None = None,
         edge_max: float = EDGE_MAX,
         scale_reg_weight: float = SCALE_REG_WEIGHT,
     ):
@@ -241,6 +249,10 @@ class LearnedKernel(Kernel):
         if proj_precision not in ("auto", "fp32", "bf16"):
             raise ValueError(f"learned kernel: proj_precision must be auto, fp32 or bf16, got {proj_precision!r}")
         self.proj_precision = proj_precision
+        self.proj_lr_mult = (float(proj_lr_mult) if proj_lr_mult is not None
+                             else 1.0 if k == 2 else PROJ_LR_MULT_ABOVE_K2)
+        if not (self.proj_lr_mult >= 0.0 and math.isfinite(self.proj_lr_mult)):
+            raise ValueError(f"learned kernel: proj_lr_mult must be a number >= 0, got {proj_lr_mult}")
         self.edge_max = float(edge_max)
         if not 0.0 < self.edge_max <= 1.0:
             raise ValueError(f"learned kernel: edge_max must be in (0, 1], got {edge_max}")
@@ -292,6 +304,7 @@ class LearnedKernel(Kernel):
             "z3d_lr": self.z3d_lr,
             "weights": self.weights,
             "proj_precision": self.proj_precision,
+            "proj_lr_mult": self.proj_lr_mult,
             "edge_max": self.edge_max,
             "scale_reg_weight": self.scale_reg_weight,
         }
@@ -338,6 +351,9 @@ class LearnedKernel(Kernel):
 
     def learning_rates(self):
         return {"z3d": self.z3d_lr} if "z" in self.inputs else {}
+
+    def network_groups(self):
+        return [(list(self.proj.parameters()), self.proj_lr_mult), (list(self.dec.parameters()), 1.0)]
 
     def network_learning_rate(self, it: int, progress: float) -> float:
         """0 for the first ``freeze_iters`` iterations (paper Sec. 4.5, stage one), then an

@@ -73,7 +73,7 @@ def load_trainer_state(tr, sd: dict) -> None:
     # moments and step counts in place, which would rewrite a rollback snapshot
     tr.opt.load_state_dict(copy.deepcopy(sd["opt"]))
     if tr.net_opt is not None and sd.get("net_opt") is not None:
-        tr.net_opt.load_state_dict(copy.deepcopy(sd["net_opt"]))
+        tr.net_opt.load_state_dict(_regrouped(copy.deepcopy(sd["net_opt"]), tr.net_opt))
     # generator states are CPU byte tensors whatever the device (a checkpoint loaded with
     # map_location="cuda" moves them there)
     tr.view_gen.set_state(sd["view_gen"].cpu())
@@ -85,3 +85,18 @@ def load_trainer_state(tr, sd: dict) -> None:
     set_numpy_rng_state(sd["numpy_rng"])
     version, internal, gauss_next = sd["python_rng"]
     random.setstate((version, tuple(internal), gauss_next))
+
+
+def _regrouped(saved: dict, opt: torch.optim.Optimizer) -> dict:
+    """A network optimiser's state saved with one parameter group (checkpoints written before
+    the learned kernel gave each network its own group) split into ``opt``'s groups. The
+    parameters keep their order, so their moments carry over unchanged."""
+    if len(saved["param_groups"]) == len(opt.param_groups):
+        return saved
+    ids = [i for g in saved["param_groups"] for i in g["params"]]
+    hyper = {k: v for k, v in saved["param_groups"][0].items() if k != "params"}
+    groups, start = [], 0
+    for g in opt.param_groups:
+        groups.append({**hyper, "lr_mult": g["lr_mult"], "params": ids[start:start + len(g["params"])]})
+        start += len(g["params"])
+    return {"state": saved["state"], "param_groups": groups}

@@ -171,8 +171,8 @@ class Trainer:
         lrs["means"] = self.cfg.means_lr * self.extent
         lrs["log_scales"] *= self.cfg.scales_lr_mult
         self.opt = PrimitiveAdam(self.model.prims, lrs)
-        net_params = list(self.model.kernel.parameters())
-        self.net_opt = torch.optim.Adam(net_params, lr=0.0) if net_params else None
+        groups = [{"params": params, "lr": 0.0, "lr_mult": mult} for params, mult in self.model.kernel.network_groups()]
+        self.net_opt = torch.optim.Adam(groups, lr=0.0) if groups else None
 
     def progress(self) -> float:
         p = self.it / max(1, self.cfg.iters)
@@ -205,7 +205,7 @@ class Trainer:
                     self.opt.set_lr(name, lr * lr_scale)
         if self.net_opt is not None:
             for g in self.net_opt.param_groups:
-                g["lr"] = self.model.kernel.network_learning_rate(self.it, p) * lr_scale
+                g["lr"] = self.model.kernel.network_learning_rate(self.it, p) * g["lr_mult"] * lr_scale
         return means_lr, lr_scale
 
     # ---- one iteration -----------------------------------------------------------------
