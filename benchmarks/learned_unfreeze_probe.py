@@ -112,6 +112,8 @@ def main() -> None:
     ap.add_argument("--no-short-run-lrs", action="store_true")
     ap.add_argument("--keep-net", choices=("proj", "dec"), default=None,
                     help="keep this network at its pretrained weights (the other trains)")
+    ap.add_argument("--save-at", default="", help="comma-separated iterations at which to save the "
+                    "trainer's state next to OUT (OUT.itN.pt)")
     ap.add_argument("--detach-geometry", action="store_true",
                     help="no gradient from Phi_proj's inputs into the means, scales and rotations")
     ap.add_argument("--kernel-option", action="append", default=[])
@@ -193,6 +195,8 @@ def main() -> None:
         measure["net"] = {}
         info = trainer.train_step()
         rebind()
+        if str(info.it) in a.save_at.split(","):
+            torch.save(trainer.state_dict(), a.out.with_suffix(f".it{info.it}.pt"))
         losses.append(info.loss)
         psnrs.append(info.psnr)
         stats = trainer.strategy.last_stats

@@ -70,3 +70,39 @@ def test_models_saved_before_the_bound_render_as_they_were_made(tmp_path):
     assert build_model(spec, prims, model.kernel.state_dict()).kernel.edge_max == EDGE_MAX
     old = {**spec, "kernel_options": {}}  # a file written before edge_max existed
     assert build_model(old, prims, model.kernel.state_dict()).kernel.edge_max == 1.0
+
+
+def test_the_envelope_keeps_a_k8_box_falling_on_every_path_and_leaves_the_pretrained_cosine():
+    """k > 2: each interior sample is at most d(0) (1 - (1 - edge_max) r^p)
+    (docs/decisions/0104-learned-kernel-profile-envelope.md)."""
+    model = random_model(40, 6, kernel="learned")
+    cam = orbit_cameras(3)[0]
+    kern = LearnedKernel(k=8)
+    r = torch.linspace(0, 1, 8)
+    envelope = 1 - (1 - EDGE_MAX) * r ** kern.envelope_power
+    # the shipped networks at z3d = 0 (cosine in r^2) lie under the envelope: (nearly) unchanged
+    cosine = torch.cos(torch.pi / 2 * r ** 2)
+    assert (cosine[1:-1] <= envelope[1:-1]).all()
+    view = view_of(model, cam)
+    z2d = kern.project(torch.zeros(len(view.scales), kern.latent_dim), view)
+    raw = kern.decode(z2d, kern.radii2)
+    drawn = kern.samples(z2d)
+    assert torch.allclose(drawn[:, :-1], raw[:, :-1], atol=1e-3)  # within 1e-3 of what it drew
+    # a box from Phi_dec is held under the envelope, on the torch and the native paths
+    box = LearnedKernel(k=8)
+    with torch.no_grad():
+        box.dec[-1].bias.fill_(30.0)
+    model.kernel = box
+    with torch.no_grad():
+        model.prims["z3d"] = torch.nn.Parameter(torch.zeros(model.num_primitives, box.latent_dim))
+    view = view_of(model, cam)
+    table = box.profile(dict(model.prims), view).params
+    assert torch.allclose(table[:, 1:-1], envelope[1:-1].expand_as(table[:, 1:-1]), atol=1e-5)
+    view.backend = backends.get("cpu", "cpu")
+    with torch.no_grad():
+        native = box.profile(dict(model.prims), view).params
+    assert (native[:, 1:-1] <= envelope[1:-1] + 1e-3).all()
+    # off: the box is drawn as Phi_dec gives it
+    assert LearnedKernel(k=8, envelope_power=0).bound(torch.ones(2, 8))[:, 1:-1].eq(1).all()
+    # k = 2 has no interior samples: the envelope does not apply
+    assert LearnedKernel(k=2).bound(torch.ones(1, 2)).tolist() == [[1.0, EDGE_MAX]]

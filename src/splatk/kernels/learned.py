@@ -65,8 +65,8 @@ EDGE_MAX = 0.25
 #: the scale regulariser's weight on this kernel's scales: its 1-sigma support over the
 #: Gaussian's 3 (see ``scale_reg_weight``)
 SCALE_REG_WEIGHT = 1.0 / 3.0
-#: Phi_proj's learning rate over the networks' rate for k > 2 (see ``proj_lr_mult``)
-PROJ_LR_MULT_ABOVE_K2 = 0.1
+#: the power of the interior samples' envelope (see ``envelope_power``)
+ENVELOPE_POWER = 4.0
 #: options that fix the networks' shapes; a weights file must match them
 ARCH_OPTIONS = ("latent_dim", "latent2d_dim", "proj_width", "dec_width", "proj_inputs")
 
@@ -134,21 +134,6 @@ def phi_dec(w1, b1, w2, b2, w3, b3, z2d, r2, logits: bool = False) -> torch.Tens
     return out if logits else torch.sigmoid(out)
 
 
-def canonical_views(n_views: int = 6) -> torch.Tensor:
-    """[V, 3, 3] world->camera rotations looking along +-x, +-y, +-z (first ``n_views``)."""
-    rots = []
-    for axis in range(3):
-        for sign in (1.0, -1.0):
-            f = torch.zeros(3)
-            f[axis] = sign
-            up = torch.zeros(3)
-            up[(axis + 1) % 3] = 1.0
-            r = torch.linalg.cross(f, up)
-            d = torch.linalg.cross(f, r)
-            rots.append(torch.stack([r, d, f]))
-    return torch.stack(rots[:n_views])
-
-
 @register_kernel
 class LearnedKernel(Kernel):
     """Learned view-dependent kernel: per-primitive ``z3d`` plus global Phi_proj / Phi_dec.
@@ -165,17 +150,19 @@ class LearnedKernel(Kernel):
             freeze (paper: 1.6e-4 -> 1.6e-6).
         net_lr_mult: multiplies the network LR; None = 10 without pretrained weights (paper
             Sec. 5.4, "no pre-train"), else 1.
-        proj_lr_mult: multiplies Phi_proj's LR on top of that (Phi_dec keeps the networks' LR).
-            None: 1 (the paper's rate) for k = 2, PROJ_LR_MULT_ABOVE_K2 for k > 2. At the paper's
-            rate a k = 8 fit diverged once Phi_proj had drifted 12-15 % from its pretrained
-            weights, whatever Phi_dec did; with Phi_proj at 1/10 it trained on
-            (docs/decisions/0104-learned-kernel-proj-rate.md).
-        z3d_lr: Adam LR of the per-primitive latents (the paper does not give one). 1e-4:
-            after pretraining a unit change of z3d moves the logits of d(0) + d(1) by 1-2.5,
-            so 1e-4 lets a latent travel a few units over a 30k-iteration fit. Measured on
-            `cup` (downscale 8, 1500 iterations, freeze 300, cpu backend), test / train PSNR:
-            z3d_lr 0: 28.41 / 29.69, 1e-4: 28.42 / 29.68, 3e-4: 28.29 / 29.14,
-            1e-3: 27.98 / 28.63, 3e-3: 27.24 / 28.05; larger rates cost PSNR on both splits.
+        proj_lr_mult: multiplies Phi_proj's LR on top of that (Phi_dec keeps the networks' LR);
+            1 is the paper's rate.
+        envelope_power: p of the envelope that bounds the interior samples (k > 2): each is at
+            most d(0) (1 - (1 - edge_max) r^p). Without it, Phi_proj turned some primitives'
+            profiles into boxes (flat to r = 5/7, then a cliff to the edge bound); large ones
+            then spilled past the surfaces they covered and a k = 8 fit diverged. The
+            pretrained cosine lies under the envelope at p = 4, so frozen networks draw what
+            they drew; 0 turns the envelope off
+            (docs/decisions/0104-learned-kernel-profile-envelope.md).
+        z3d_lr: Adam LR of the per-primitive latents (the paper does not give one). After
+            pretraining a unit change of z3d moves the logits of d(0) + d(1) by 1-2.5, so 1e-4
+            lets a latent travel a few units over a 30k-iteration fit; on `cup` (1/8 size, 1,500
+            iterations) 3e-4 to 3e-3 scored lower on the test and the train views alike.
         weights: pretrained networks from `splatk pretrain`: "default" (the shipped cosine
             file), a path, or "none" (He init, for the no-pretraining ablation).
         edge_max: the profile sample at the support edge (r = 1) is Phi_dec's value there times
@@ -197,11 +184,8 @@ class LearnedKernel(Kernel):
         proj_precision: arithmetic of Phi_proj's matrix products: "fp32", "bf16" (CPU autocast;
             weights, inputs and z2d stay float32, Phi_dec stays float32), or "auto": bf16 for
             renders without gradients (eval, export) on a CPU with native bf16 units, fp32
-            otherwise. Phi_proj runs once per visible primitive and view and is most of the
-            learned kernel's render cost: on this project's 2-core AVX-512 machine its four
-            layers at 50k primitives take 18 ms in fp32 and 5 ms in bf16. Training stays fp32
-            under "auto": there bf16 was slower (59.6 vs 43.6 ms per iteration on cup at 1/4
-            size, 20k primitives) for the same test PSNR.
+            otherwise. Phi_proj is most of the learned kernel's render cost, and bf16 cuts it
+            about 3.5x on AVX-512; training stays fp32, where bf16 was slower on this machine.
     """
 
     name = "learned"
@@ -228,7 +212,8 @@ class LearnedKernel(Kernel):
         z3d_lr: float = 1e-4,
         weights: str | None = "default",
         proj_precision: str = "auto",
-        proj_lr_mult: float | None = None,
+        proj_lr_mult: float = 1.0,
+        envelope_power: float = ENVELOPE_POWER,
         edge_max: float = EDGE_MAX,
         scale_reg_weight: float = SCALE_REG_WEIGHT,
     ):
@@ -249,8 +234,7 @@ class LearnedKernel(Kernel):
         if proj_precision not in ("auto", "fp32", "bf16"):
             raise ValueError(f"learned kernel: proj_precision must be auto, fp32 or bf16, got {proj_precision!r}")
         self.proj_precision = proj_precision
-        self.proj_lr_mult = (float(proj_lr_mult) if proj_lr_mult is not None
-                             else 1.0 if k == 2 else PROJ_LR_MULT_ABOVE_K2)
+        self.proj_lr_mult = float(proj_lr_mult)
         if not (self.proj_lr_mult >= 0.0 and math.isfinite(self.proj_lr_mult)):
             raise ValueError(f"learned kernel: proj_lr_mult must be a number >= 0, got {proj_lr_mult}")
         self.edge_max = float(edge_max)
@@ -273,6 +257,10 @@ class LearnedKernel(Kernel):
         edge = torch.ones(k)
         edge[-1] = self.edge_max
         self.register_buffer("sample_bound", edge, persistent=False)  # [k]: edge_max at r = 1
+        self.envelope_power = float(envelope_power)
+        envelope = 1.0 - (1.0 - self.edge_max) * radii ** max(self.envelope_power, 1e-6)
+        envelope[-1] = 1e30  # the edge sample has its own bound
+        self.register_buffer("envelope", envelope, persistent=False)
 
         # A missing weights file is reported at first use, not here: load_model() rebuilds the
         # kernel from its options and then loads the saved networks over it, which must work
@@ -305,6 +293,7 @@ class LearnedKernel(Kernel):
             "weights": self.weights,
             "proj_precision": self.proj_precision,
             "proj_lr_mult": self.proj_lr_mult,
+            "envelope_power": self.envelope_power,
             "edge_max": self.edge_max,
             "scale_reg_weight": self.scale_reg_weight,
         }
@@ -437,62 +426,34 @@ class LearnedKernel(Kernel):
                 LOG_DIST_SCALE, LOG_ANGLE_SHIFT, LOG_ANGLE_SCALE,
                 self._proj_layers(), self.dec[0::2], self.radii2, LEAKY_SLOPE)
             if table is not None:
-                return Profile("table", table * self.sample_bound)
+                return Profile("table", self.bound(table))
         z2d = self.project(prims.get("z3d"), view)
         if native is not None:  # one native pass where the backend has one (same values)
             first, _, mid, _, last = self.dec
             table = native.learned_decode(z2d, (first, mid, last), self.radii2, LEAKY_SLOPE)
             if table is not None:
-                return Profile("table", table * self.sample_bound)
+                return Profile("table", self.bound(table))
         return Profile("table", self.samples(z2d))
 
     def samples(self, z2d: torch.Tensor) -> torch.Tensor:
-        """The k profile samples the rasteriser interpolates (paper Eq. 7), the one at the
-        support edge bounded by ``edge_max``: [M, k]."""
-        return self.decode(z2d, self.radii2) * self.sample_bound
+        """The k profile samples the rasteriser interpolates (paper Eq. 7), bounded (:meth:`bound`): [M, k]."""
+        return self.bound(self.decode(z2d, self.radii2))
+
+    def bound(self, table: torch.Tensor) -> torch.Tensor:
+        """Phi_dec's samples [M, k] -> the table drawn: the one at the support edge times
+        ``edge_max``, and (``envelope_power`` > 0) each interior sample at most d(0) times the
+        envelope 1 - (1 - edge_max) r^p."""
+        table = table * self.sample_bound
+        if self.envelope_power > 0 and self.k > 2:
+            table = torch.minimum(table, table[:, :1] * self.envelope)
+        return table
 
     # ---- export to plain Gaussians ----------------------------------------------------
-    @torch.no_grad()
     def gaussian_scale_factor(self, prims, n_views: int = 6, depth_over_scale: float = 100.0,
                               chunk: int = 65536) -> torch.Tensor:
         """Per-primitive f such that a Gaussian of scale ``f * s`` has the second moment of the
-        view-averaged kernel (for 3DGS viewers, which cannot show view dependence).
-
-        Approximation: the view-dependent kernel is averaged over ``n_views`` canonical views
-        (the camera looks along +-x, +-y, +-z of the world at the primitive, centred on the
-        optical axis at a depth of ``depth_over_scale`` times its largest scale, i.e. a splat
-        of a few pixels' radius). Its k-sample table is interpolated as the rasteriser does
-        and, for the radially symmetric profile d(r) (r in units of the 1-sigma support), the
-        matching Gaussian exp(-r^2 / (2 f^2)) has per-axis variance
-        ``f^2 = int d r^3 dr / (2 int d r dr)``. The centre value d(0) is not carried over:
-        viewers multiply the Gaussian by the stored opacity.
-        """
-        from ..functional.projection import quats_to_rotmats
+        view-averaged kernel (:func:`splatk.kernels.learned_export.gaussian_scale_factor`)."""
+        from .learned_export import gaussian_scale_factor
 
         self._check_weights()
-        n = prims["means"].shape[0]
-        views = canonical_views(n_views).to(prims["means"].device)
-        grid = torch.linspace(0.0, 1.0, 257, device=views.device)
-        out = torch.empty(n, device=views.device)
-        for a in range(0, n, chunk):
-            b = min(n, a + chunk)
-            scales = torch.exp(prims["log_scales"][a:b])
-            R = quats_to_rotmats(prims["quats"][a:b])
-            depth = depth_over_scale * scales.amax(1)
-            mu = torch.zeros(b - a, 3, device=views.device)
-            mu[:, 2] = depth
-            z3d = prims["z3d"][a:b] if "z3d" in prims else None
-            tables = 0.0
-            for V in views:
-                view = ViewContext(mu, scales, V[None] @ R)
-                tables = tables + self.samples(self.project(z3d, view))
-            tables = tables / len(views)  # [m, k]
-            # the rendered profile: linear interpolation of the table in r
-            t = grid * (self.k - 1)
-            idx = t.floor().long().clamp(0, self.k - 2)
-            lam = t - idx
-            d = (1 - lam) * tables[:, idx] + lam * tables[:, idx + 1]  # [m, G]
-            num = torch.trapezoid(d * grid**3, grid, dim=1)
-            den = torch.trapezoid(d * grid, grid, dim=1).clamp_min(1e-12)
-            out[a:b] = torch.sqrt((num / (2 * den)).clamp_min(1e-8))
-        return out
+        return gaussian_scale_factor(self, prims, n_views, depth_over_scale, chunk)
