@@ -70,6 +70,12 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
               help="Planar primitives: weight of the depth distortion (blended variance of inverse depth along "
                    "each ray; 2DGS's L1 form takes 1000 on DTU, 10-100 on Tanks and Temples), on after 3000 of "
                    "30k iterations. [default: 0]")
+@click.option("--opacity-reg", type=float,
+              help="Weight of the mean-opacity regulariser (DBS / 3DGS-MCMC). [default: 0.01; 0 with "
+                   "--strategy adc]")
+@click.option("--scale-reg", type=float,
+              help="Weight of the mean-scale regulariser (DBS / 3DGS-MCMC). [default: 0.01; 0 with "
+                   "--strategy adc]")
 @click.option("--init", "init", type=click.Choice(["auto", "sfm", "random"]),
               help="Initial primitives: SfM points, random, or auto (SfM points when the scene has them). [default: auto]")
 @click.option("--seed", type=int, help="Random seed. [default: 0]")
