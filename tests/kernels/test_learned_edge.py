@@ -68,8 +68,10 @@ def test_models_saved_before_the_bound_render_as_they_were_made(tmp_path):
     assert spec["kernel_options"]["edge_max"] == EDGE_MAX  # recorded in every new file
     prims = {k: v.detach() for k, v in model.prims.items()}
     assert build_model(spec, prims, model.kernel.state_dict()).kernel.edge_max == EDGE_MAX
-    old = {**spec, "kernel_options": {}}  # a file written before edge_max existed
-    assert build_model(old, prims, model.kernel.state_dict()).kernel.edge_max == 1.0
+    assert spec["kernel_options"]["envelope_power"] == model.kernel.envelope_power > 0
+    old = {**spec, "kernel_options": {}}  # a file written before edge_max and the envelope existed
+    rebuilt = build_model(old, prims, model.kernel.state_dict()).kernel
+    assert rebuilt.edge_max == 1.0 and rebuilt.envelope_power == 0.0
 
 
 def test_the_envelope_keeps_a_k8_box_falling_on_every_path_and_leaves_the_pretrained_cosine():

@@ -45,8 +45,9 @@ def atomic_torch_save(obj, path: str | Path) -> Path:
 
 
 #: kernel options whose default changed: (kernel name, option) -> the value files that do not
-#: record it were made with (the learned kernel's profile was unbounded at its support edge)
-OPTIONS_BEFORE_RECORDED = {("learned", "edge_max"): 1.0}
+#: record it were made with (the learned kernel's profile was unbounded at its support edge, and
+#: its interior samples had no envelope)
+OPTIONS_BEFORE_RECORDED = {("learned", "edge_max"): 1.0, ("learned", "envelope_power"): 0.0}
 
 
 def model_spec(model: SplatModel | PlanarModel, kernel_options: dict, color_options: dict) -> dict:
