@@ -190,6 +190,31 @@ def test_stability_matrix_2x2(scene, tmp_path):
     assert (tmp_path / "charts" / "stability_demo.svg").is_file()
 
 
+def test_stability_schedules_preset_runs_each_kernel_as_fit_would_at_each_schedule():
+    from splatk.bench.methods import load_bench_file
+    from splatk.bench.stability import stability_methods
+    from splatk_cli.common import find_preset
+
+    st = load_bench_file(find_preset("bench_stability_schedules"))["stability"]
+    command_line = {"iters": 1000, "downscale": 4, "budget": 5000}
+    cells = stability_methods(command_line, st["kernels"], st["conditions"], scene_has_points=True)
+    assert len(cells) == 6 * 3 and all(m is not None and m["init"] == "sfm" for _, _, m, _ in cells)
+    for row, col, method, _ in cells:
+        cfg, notes = fit_config_for(method)
+        got = (cfg.train.iters, cfg.downscale, cfg.sh_degree)
+        if col == "short":  # the command line's run, its schedules scaled as fit scales them
+            assert got == (1000, 4, 3) and cfg.train.budget == 5000 and "scaled_schedules" in notes
+        elif col == "7k":
+            assert got == (7000, 2, 3) and cfg.train.budget == 20000 and "scaled_schedules" in notes
+        else:  # the paper's equal-memory protocol: 30k unscaled, 1 MB for each kernel
+            assert got == (30000, 4, 0) and "scaled_schedules" not in notes
+            per_prim, nets = bytes_per_primitive(cfg)
+            assert notes["budget"]["budget_bytes"] == 2**20 and cfg.train.budget == (2**20 - nets) // per_prim
+        assert cfg.kernel == ("learned" if row.startswith("learned") else row)
+        if row == "learned-kauto":
+            assert method["k"] == "auto"
+
+
 # ---- planar primitives ------------------------------------------------------------------------
 def test_planar_bytes_per_primitive_counted_from_the_planar_model():
     from splatk.kernels import make_kernel
