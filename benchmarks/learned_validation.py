@@ -7,9 +7,10 @@ every other setting default, under one of two protocols:
   (``--budget-bytes 1MB``: the primitive count follows from each kernel's bytes).
 
     python benchmarks/learned_validation.py OUT [--protocol 7k|30k] [--scenes juicebox_frontal,...]
-        [--kernels gaussian,learned,learned-kauto] [--seed 0] [--jobs 2]
+        [--kernels gaussian,learned,learned-k2] [--seed 0] [--jobs 2]
 
-Kernel ``learned-kauto`` is the learned kernel with ``--k auto``, ``learned-k4`` with ``--k 4``.
+Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
+0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k.
 
 Forward-facing scenes (``*_frontal``) are made under OUT/scenes by
 ``benchmarks/make_frontal_scene.py`` from the shared 360-degree capture of the same name; the
@@ -44,8 +45,8 @@ PROTOCOLS = {
 #: the bench's kernel names and their fit options
 KERNELS = {
     "gaussian": ["--kernel", "gaussian"],
-    "learned": ["--kernel", "learned"],
-    "learned-kauto": ["--kernel", "learned", "--k", "auto"],
+    "learned": ["--kernel", "learned"],  # every default: k auto (decision 0105)
+    "learned-k2": ["--kernel", "learned", "--k", "2"],
     "learned-k4": ["--kernel", "learned", "--k", "4"],
     "learned-k8": ["--kernel", "learned", "--k", "8"],
 }

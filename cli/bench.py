@@ -40,7 +40,7 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
               help="Bench YAML (presets/bench_*.yaml name or a file): defaults, methods/grid, scenes, stability.")
 @click.option("--kernel", multiple=True, type=click.Choice(kernel_names("volumetric")),
               help="Kernel(s) of the grid (repeat). Replaces the YAML's methods.")
-@click.option("--k", "ks", multiple=True, type=int, help="Learned kernel: k value(s) (repeat). [default: 2]")
+@click.option("--k", "ks", multiple=True, help="Learned kernel: k value(s) (repeat), or auto. [default: auto]")
 @click.option("--weights", help="Learned kernel weights for flag-built methods: default, a file, or none.")
 @click.option("--color", multiple=True, type=click.Choice(sorted(COLOR_MODELS)), help="Colour model(s) (repeat).")
 @click.option("--budget", multiple=True, help="Primitive budget(s) (repeat), or auto.")
@@ -182,7 +182,7 @@ def build_methods(kernels, ks, weights, colors, budgets, budget_bytes) -> list[d
     kern = []
     for k in kernels:
         if k == "learned":
-            for kv in (ks or (2,)):
+            for kv in (ks or ("auto",)):
                 m = {"kernel": "learned", "k": kv}
                 if weights:
                     m["weights"] = weights

@@ -29,7 +29,7 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 @click.option("--preset", help="YAML preset name (presets/) or file; command line beats preset.")
 @click.option("--kernel", type=click.Choice(kernel_names()), help="Splatting kernel. [default: gaussian]")
 @click.option("--k", "k", help="Learned kernel: profile samples per primitive (2, 4, 8), or `auto`: the k the "
-              "scene's pixels per primitive call for (decision 0102). [default: 2]")
+              "scene's pixels per primitive call for (decisions 0102, 0105). [default: auto]")
 @click.option("--kernel-weights", type=click.Path(path_type=Path), help="Learned kernel: pretrained networks from `splatk pretrain`.")
 @click.option("--color", type=click.Choice(sorted(COLOR_MODELS)), help="Colour model: spherical harmonics or spherical Beta. [default: sh]")
 @click.option("--sh-degree", type=int, help="Maximum SH degree 0-3. [default: 3]")

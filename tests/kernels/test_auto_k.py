@@ -1,4 +1,5 @@
-"""`--k auto`: the learned kernel's k follows the scene's pixels per primitive (decision 0102)."""
+"""`--k auto`: the learned kernel's k follows the scene's pixels per primitive (decision 0102),
+and is what a new run gets when no k is given (decision 0105)."""
 import pytest
 import yaml
 from click.testing import CliRunner
@@ -32,6 +33,12 @@ def test_k_option_reads_auto_and_numbers_and_refuses_other_words():
     assert cfg.kernel_options["k"] == "auto"
     cfg, _ = fit_config_from_options({"kernel": "learned", "k": "4"})
     assert cfg.kernel_options["k"] == 4
+    # no k given: the scene chooses; a preset's kernel_options k counts as given
+    assert fit_config_from_options({"kernel": "learned"})[0].kernel_options["k"] == "auto"
+    cfg, _ = fit_config_from_options({"kernel": "learned", "kernel_options": {"k": 8}})
+    assert cfg.kernel_options["k"] == 8
+    # planar learned kernels have no k
+    assert "k" not in fit_config_from_options({"kernel": "learned", "primitive": "planar"})[0].kernel_options
     with pytest.raises(InputError, match="--k"):
         fit_config_from_options({"kernel": "learned", "k": "many"})
     # bytes do not depend on k, so --budget-bytes works with k auto
@@ -48,8 +55,8 @@ def test_fit_with_k_auto_records_the_chosen_k(tmp_path):
     run = tmp_path / "run"
     # 24 x 24 = 576 pixels per view: 400 primitives give 1.44 per primitive (k = 8), 900 give 0.64
     # (k = 4), 60 give 9.6 (k = 2)
-    for budget, expected in ((400, 8), (900, 4), (60, 2)):
-        res = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(run), "--kernel", "learned", "--k", "auto",
+    for budget, expected, k_flag in ((400, 8, ["--k", "auto"]), (900, 4, []), (60, 2, ["--k", "auto"])):
+        res = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(run), "--kernel", "learned", *k_flag,
                                        "--budget", str(budget), "--iters", "4", "--threads", "1",
                                        "--backend", "torch", "--overwrite", "-q"])
         assert res.exit_code == 0, res.output

@@ -132,6 +132,9 @@ def test_budget_bytes_from_floats_per_primitive():
     assert learned.train.budget == (2**20 - l_nets) // l_bytes
     assert notes["budget"]["bytes_per_primitive"] == g_bytes and lnotes["budget"]["network_bytes"] == l_nets
     assert method_id({"kernel": "learned", "k": 2, "budget_bytes": "1MB"}) == "learned-k2-sh-B1M"
+    # a learned method without k runs as fit does without --k (decision 0105), and its id says so
+    assert method_id({"kernel": "learned"}) == "learned-kauto-sh"
+    assert fit_config_for({"kernel": "learned"})[0].kernel_options["k"] == "auto"
 
 
 def test_short_runs_scale_schedules():

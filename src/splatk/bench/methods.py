@@ -24,6 +24,7 @@ from pathlib import Path
 import yaml
 
 from ..errors import InputError
+from ..kernels.auto_k import AUTO_K
 from ..stages.fit_config import FitConfig, check_fit_config, fit_config_from_options, parse_bytes
 
 #: keys a method may have besides FitConfig / TrainConfig fields
@@ -67,7 +68,7 @@ def method_id(method: dict, defaults: dict | None = None) -> str:
         m.pop("k", None)  # volumetric-only (fit_config_for ignores it too)
     if kernel == "learned":
         if not planar:
-            parts.append(f"k{m.pop('k', 2)}")
+            parts.append(f"k{m.pop('k', AUTO_K)}")
         if "pretrain" in m:
             parts.append(f"pre{m.pop('pretrain')}")
         w = m.pop("weights", None)

@@ -153,6 +153,8 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
                 kernel_options["weights"] = _weights_path(w)
     if cfg.kernel == "learned" and cfg.primitive == "volumetric" and base is None:
         _adopt_network_shape(kernel_options)
+        # a new run lets the scene choose k unless told (decision 0105)
+        kernel_options.setdefault("k", AUTO_K)
     cfg.kernel_options = kernel_options
     auto_options = opts.pop("auto_budget", None)
     budget_bytes = opts.pop("budget_bytes", None)
