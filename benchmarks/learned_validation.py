@@ -7,7 +7,7 @@ every other setting default, under one of two protocols:
   (``--budget-bytes 1MB``: the primitive count follows from each kernel's bytes).
 
     python benchmarks/learned_validation.py OUT [--protocol 7k|30k] [--scenes juicebox_frontal,...]
-        [--kernels gaussian,learned,learned-k2] [--seed 0] [--jobs 2]
+        [--kernels gaussian,learned,learned-k2] [--seed 0] [--jobs 2] [--table-only]
 
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k.
@@ -62,9 +62,11 @@ def scene_path(name: str, out: Path) -> Path:
     return made
 
 
-def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path) -> dict:
+def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_only: bool = False) -> dict | None:
     run = out / "runs" / (protocol if seed == 0 else f"{protocol}_seed{seed}") / f"{scene}_{kernel}"
     result = run / "eval.json"
+    if not result.exists() and table_only:
+        return None
     if not result.exists():
         env = dict(os.environ, OMP_NUM_THREADS="1")
         subprocess.run(["splatk", "fit", str(scene_path(scene, out)), "--out", str(run), "--overwrite",
@@ -91,6 +93,8 @@ def main() -> None:
                     help=f"comma-separated, of {', '.join(KERNELS)}")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--table-only", action="store_true",
+                    help="fit nothing: tabulate the cells that have run (the others are left out)")
     args = ap.parse_args()
     kernels, scenes = args.kernels.split(","), args.scenes.split(",")
     unknown = sorted(set(kernels) - set(KERNELS))
@@ -98,16 +102,19 @@ def main() -> None:
         ap.error(f"unknown kernel(s) {', '.join(unknown)}; choose from {', '.join(KERNELS)}")
     cells = [(s, k) for s in scenes for k in kernels]
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out), cells))
+        rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only), cells)
+                if r is not None]
     learned = [k for k in kernels if k != "gaussian"]
     print(f"{'scene':<18} {'set':<10} " + " ".join(f"{k:>13}" for k in kernels)
           + "".join(f"  {k + ' - gaussian':>24}" for k in learned if "gaussian" in kernels))
     for scene in scenes:
         got = {r["kernel"]: r for r in rows if r["scene"] == scene}
-        gaps = "".join(f"  {got[k]['test_psnr'] - got['gaussian']['test_psnr']:>+24.2f}"
-                       for k in learned if "gaussian" in got)
-        print(f"{scene:<18} {got[kernels[0]]['set']:<10} "
-              + " ".join(f"{got[k]['test_psnr']:>13.2f}" for k in kernels) + gaps)
+        if not got:
+            continue
+        gaps = "".join(f"  {got[k]['test_psnr'] - got['gaussian']['test_psnr']:>+24.2f}" if k in got and "gaussian" in got
+                       else f"  {'-':>24}" for k in learned if "gaussian" in kernels)
+        print(f"{scene:<18} {'tuning' if scene in TUNING else 'validation':<10} "
+              + " ".join(f"{got[k]['test_psnr']:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
     doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed, "rows": rows}
     name = "learned_validation" + ("" if args.protocol == "7k" else f"_{args.protocol}") \
         + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"

@@ -1,0 +1,115 @@
+"""Where a run's test views lose: veils of primitives just in front of the camera, and for the
+learned kernel, primitives whose profile the networks switch on in some train views and off in
+others.
+
+    python benchmarks/near_camera_veils.py RUN [RUN ...] [--scene PATH] [--json OUT.json]
+
+For each run (a `splatk fit` folder with its model.pt), with the scene loaded as the run loaded it:
+
+* **switched**: the share of primitives whose profile centre d(0) is below 0.1 in some train view
+  and above 0.9 in another, and the mean spread (max - min) of d(0) over the train views that
+  see a primitive. Analytic kernels have d(0) = 1 in every view, so they switch nothing.
+* **per test view**: the alpha that the primitives nearer than a quarter of the visible
+  primitives' median depth composite over the image on their own, as a mean over pixels (a veil:
+  far background primitives cover whole views by design, near ones should not), and the part of
+  it drawn by switched primitives alone; beside it the view's test PSNR from the run's eval.json
+  where there is one.
+
+Prints a table per run and, with ``--json``, writes every figure.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from splatk import backends
+from splatk.data import load_scene
+from splatk.kernels.base import ViewContext
+from splatk.models.io import load_model
+
+#: "near": nearer than this fraction of the visible primitives' median depth
+NEAR_FRACTION = 0.25
+#: d(0) below OFF in one train view and above ON in another: switched by the view
+OFF, ON = 0.1, 0.9
+
+
+def centres(model, backend, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(visible, d(0), depth) of every primitive in one view."""
+    prims, scales = model.prims, model.scales
+    proj = backend.project(prims["means"], prims["quats"], scales, cam.world_to_cam, cam.K, cam.width, cam.height,
+                           support_sigmas=model.kernel.support_sigmas, want_view=model.kernel.needs_view)
+    if model.kernel.needs_view:
+        view = ViewContext(proj.means_cam, scales, proj.rotmats_cam, None)
+        centre = model.kernel.samples(model.kernel.project(prims["z3d"], view))[:, 0]
+    else:
+        centre = torch.ones(len(scales))
+    return proj.visible, centre, proj.depths
+
+
+def alpha_of(model, backend, cam, keep: torch.Tensor) -> float:
+    """Mean alpha over the image of the primitives in ``keep`` rendered on their own."""
+    logits = model.prims["opacity_logits"]
+    saved = logits.data.clone()
+    logits.data[~keep] = -30.0  # the others drop out of the render
+    try:
+        out = model.render(cam, torch.zeros(3), backend=backend)
+    finally:
+        logits.data.copy_(saved)
+    return float(out.alpha.mean())
+
+
+@torch.no_grad()
+def analyse(run: Path, scene_path: Path | None) -> dict:
+    model, meta = load_model(run / "model.pt")
+    scene = load_scene(scene_path or meta["scene"], downscale=meta.get("downscale", 1.0),
+                       test_every=meta.get("test_every", 8), eval_split=meta.get("eval_split", "held-out"))
+    backend = backends.get("torch", torch.device("cpu"))
+    n = model.num_primitives
+    lowest, highest = torch.full((n,), 2.0), torch.full((n,), -1.0)
+    for cam in scene.train:
+        visible, centre, _ = centres(model, backend, cam)
+        lowest = torch.where(visible, torch.minimum(lowest, centre), lowest)
+        highest = torch.where(visible, torch.maximum(highest, centre), highest)
+    seen = highest >= 0
+    switched = (lowest < OFF) & (highest > ON)
+    evaluated = run / "eval.json"
+    psnr = {}
+    if evaluated.exists():
+        psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
+    views = []
+    for cam in scene.test:
+        visible, _, depth = centres(model, backend, cam)
+        near = visible & (depth < NEAR_FRACTION * depth[visible].median())
+        views.append({"view": cam.name, "psnr": psnr.get(cam.name), "near_primitives": int(near.sum()),
+                      "near_alpha": alpha_of(model, backend, cam, near),
+                      "near_switched_alpha": alpha_of(model, backend, cam, near & switched)})
+    return {"run": str(run), "kernel": meta["spec"]["kernel"], "primitives": n,
+            "switched_share": float(switched.sum()) / n,
+            "mean_centre_spread": float((highest - lowest)[seen].mean()) if seen.any() else 0.0,
+            "test_views": views}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--scene", type=Path, help="the scene folder, if it moved since the fit")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    rows = [analyse(run, args.scene) for run in args.runs]
+    for r in rows:
+        print(f"{r['run']}: {r['kernel']}, {r['primitives']} primitives, switched by view "
+              f"{100 * r['switched_share']:.1f} %, mean d(0) spread {r['mean_centre_spread']:.3f}")
+        print(f"  {'test view':<32} {'PSNR':>6} {'near':>6} {'near alpha':>11} {'of it switched':>15}")
+        for v in r["test_views"]:
+            psnr = "" if v["psnr"] is None else f"{v['psnr']:.2f}"
+            print(f"  {v['view'][-32:]:<32} {psnr:>6} {v['near_primitives']:>6} {v['near_alpha']:>11.3f} "
+                  f"{v['near_switched_alpha']:>15.3f}")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
