@@ -60,8 +60,11 @@ def main() -> None:
     if "adc" in arms or "mcmc" in arms:
         rows["3dgs-adc"] = fit_and_eval(scene, runs / "adc", ["--strategy", "adc"], args)
         history = adc_history(runs / "adc")
+    mcmc = None
     if "mcmc" in arms:
         rows["3dgs-mcmc"] = fit_and_eval(scene, runs / "mcmc", ["--budget", str(history["final_primitives"])], args)
+        # MCMC may end below its budget (it holds growth while many primitives are dead)
+        mcmc = adc_history(runs / "mcmc")
     print(f"{args.scene}, {args.iters} iterations, 1/{args.downscale:g} resolution")
     print(f"{'method':<12} {'PSNR':>7} {'SSIM':>7}")
     for name, m in rows.items():
@@ -70,8 +73,11 @@ def main() -> None:
         counts = history["count"]
         print("ADC primitives: " + ", ".join(f"{it}: {n:,}" for it, n in counts.items() if it % 3000 == 0))
         print(f"ADC rollbacks: {len(history['rollbacks'])}")
+    if mcmc:
+        print(f"MCMC primitives at the end: {mcmc['final_primitives']:,} (budget {history['final_primitives']:,}); "
+              f"rollbacks: {len(mcmc['rollbacks'])}")
     out = {"scene": args.scene, "iters": args.iters, "downscale": args.downscale, "results": rows,
-           "adc": history, "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__}}
+           "adc": history, "mcmc": mcmc, "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__}}
     (args.out / "adc_check.json").write_text(json.dumps(out, indent=1))
 
 
