@@ -65,9 +65,9 @@ def scene_path(name: str, out: Path) -> Path:
 def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_only: bool = False) -> dict | None:
     run = out / "runs" / (protocol if seed == 0 else f"{protocol}_seed{seed}") / f"{scene}_{kernel}"
     result = run / "eval.json"
-    if not result.exists() and table_only:
-        return None
     if not result.exists():
+        if table_only:
+            return None
         env = dict(os.environ, OMP_NUM_THREADS="1")
         subprocess.run(["splatk", "fit", str(scene_path(scene, out)), "--out", str(run), "--overwrite",
                         *KERNELS[kernel], *PROTOCOLS[protocol], "--seed", str(seed), "--threads", "1", "-q"], check=True, env=env)
@@ -76,7 +76,8 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
         result.write_text(evaluated.stdout)
     fit = json.loads((run / "fit.json").read_text())
     log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
-    # the k the run used: --k auto writes the k it chose into the kernel options; 2 is the default
+    # the k the run used: --k auto writes the k it chose into the kernel options; a run made before
+    # decision 0105 without --k has none and took k = 2
     k = yaml.safe_load((run / "config.yaml").read_text())["settings"]["kernel_options"].get("k", 2)
     return {"scene": scene, "kernel": kernel, "set": "tuning" if scene in TUNING else "validation",
             "test_psnr": json.loads(result.read_text())["mean"]["psnr"], "primitives": fit["num_primitives"],

@@ -12,6 +12,7 @@ from rich.table import Table
 from splatk.backends import backend_names
 from splatk.colors import COLOR_MODELS
 from splatk.kernels import kernel_names
+from splatk.kernels.auto_k import AUTO_K
 from splatk.stages.fit_config import PRIMITIVES, parse_duration
 from splatk.bench.methods import protocol_departures
 from splatk.bench import (
@@ -182,7 +183,7 @@ def build_methods(kernels, ks, weights, colors, budgets, budget_bytes) -> list[d
     kern = []
     for k in kernels:
         if k == "learned":
-            for kv in (ks or ("auto",)):
+            for kv in (ks or (AUTO_K,)):
                 m = {"kernel": "learned", "k": kv}
                 if weights:
                     m["weights"] = weights
