@@ -17,8 +17,11 @@ Forward-facing scenes (``*_frontal``) are made under OUT/scenes by
 others are read from ``../shared/data``. Each (scene, kernel) is one ``splatk fit SCENE --out
 OUT/runs/PROTOCOL/SCENE_KERNEL --kernel KERNEL ... --threads 1`` and one ``splatk eval --metrics
 psnr --json``; a run folder that already has its ``eval.json`` is not run again, so the grid
-resumes. Prints the table and writes OUT/learned_validation[_30k][_seedN].json (runs of a seed
-other than 0 under OUT/runs/PROTOCOL_seedN/).
+resumes. Each run's train views are measured too (``splatk eval --split train``, kept as
+``eval_train.json``): a kernel that loses on both splits lacks capacity at that budget, one that
+loses on the test views only generalises worse. Prints the tables and writes
+OUT/learned_validation[_30k][_seedN].json (runs of a seed other than 0 under
+OUT/runs/PROTOCOL_seedN/).
 """
 from __future__ import annotations
 
@@ -74,15 +77,36 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json"], check=True,
                                    env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)
+    train = run / "eval_train.json"
+    if not train.exists():  # seconds, not a fit: --table-only measures it too
+        evaluated = subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr", "--json"],
+                                   check=True, env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True, text=True)
+        train.write_text(evaluated.stdout)
     fit = json.loads((run / "fit.json").read_text())
     log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
     # the k the run used: --k auto writes the k it chose into the kernel options; a run made before
     # decision 0105 without --k has none and took k = 2
     k = yaml.safe_load((run / "config.yaml").read_text())["settings"]["kernel_options"].get("k", 2)
     return {"scene": scene, "kernel": kernel, "set": "tuning" if scene in TUNING else "validation",
-            "test_psnr": json.loads(result.read_text())["mean"]["psnr"], "primitives": fit["num_primitives"],
+            "test_psnr": json.loads(result.read_text())["mean"]["psnr"],
+            "train_psnr": json.loads(train.read_text())["mean"]["psnr"], "primitives": fit["num_primitives"],
             "k": k if kernel.startswith("learned") else None,
             "rollbacks": sum("rolled back" in (r.get("event") or "") for r in log)}
+
+
+def print_table(rows: list[dict], scenes: list[str], kernels: list[str], key: str) -> None:
+    """One line per scene: each kernel's ``key`` and each learned kernel's lead over the Gaussian."""
+    learned = [k for k in kernels if k != "gaussian"]
+    print(f"{'scene':<18} {'set':<10} " + " ".join(f"{k:>13}" for k in kernels)
+          + "".join(f"  {k + ' - gaussian':>24}" for k in learned if "gaussian" in kernels))
+    for scene in scenes:
+        got = {r["kernel"]: r for r in rows if r["scene"] == scene}
+        if not got:
+            continue
+        gaps = "".join(f"  {got[k][key] - got['gaussian'][key]:>+24.2f}" if k in got and "gaussian" in got
+                       else f"  {'-':>24}" for k in learned if "gaussian" in kernels)
+        print(f"{scene:<18} {'tuning' if scene in TUNING else 'validation':<10} "
+              + " ".join(f"{got[k][key]:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
 
 
 def main() -> None:
@@ -105,17 +129,9 @@ def main() -> None:
     with ThreadPoolExecutor(args.jobs) as pool:
         rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only), cells)
                 if r is not None]
-    learned = [k for k in kernels if k != "gaussian"]
-    print(f"{'scene':<18} {'set':<10} " + " ".join(f"{k:>13}" for k in kernels)
-          + "".join(f"  {k + ' - gaussian':>24}" for k in learned if "gaussian" in kernels))
-    for scene in scenes:
-        got = {r["kernel"]: r for r in rows if r["scene"] == scene}
-        if not got:
-            continue
-        gaps = "".join(f"  {got[k]['test_psnr'] - got['gaussian']['test_psnr']:>+24.2f}" if k in got and "gaussian" in got
-                       else f"  {'-':>24}" for k in learned if "gaussian" in kernels)
-        print(f"{scene:<18} {'tuning' if scene in TUNING else 'validation':<10} "
-              + " ".join(f"{got[k]['test_psnr']:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
+    for split in ("test", "train"):
+        print(f"\n{split} PSNR (dB)")
+        print_table(rows, scenes, kernels, f"{split}_psnr")
     doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed, "rows": rows}
     name = "learned_validation" + ("" if args.protocol == "7k" else f"_{args.protocol}") \
         + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"

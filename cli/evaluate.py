@@ -20,11 +20,13 @@ from splatk.stages.evaluate import run_eval
 @click.option("--device", default="cpu", show_default=True,
               help="Torch device to render and measure on, e.g. cpu or cuda (cuda renders with the torch backend).")
 @click.option("--scene", type=click.Path(path_type=Path), help="Scene folder, if it moved since `fit`.")
-@click.option("--split", type=click.Choice(["test", "train"]), default="test", show_default=True)
+@click.option("--split", type=click.Choice(["test", "train"]), default="test", show_default=True,
+              help="Views to measure; train writes RUN/metrics_train.json and leaves metrics.json as it was.")
 @click.option("--save-renders", is_flag=True, help="Also write the rendered views as PNG.")
 @click.option("--json", "as_json", is_flag=True, help="Print the metrics JSON to stdout.")
 def command(run, metrics, lpips_net, backend, device, scene, split, save_renders, as_json):
-    """Render RUN's held-out views and measure them; writes RUN/metrics.json."""
+    """Render RUN's held-out views and measure them; writes RUN/metrics.json
+    (`--split train`: RUN/metrics_train.json)."""
     names = tuple(m.strip() for m in metrics.split(",") if m.strip())
     bad = [m for m in names if m not in ("psnr", "ssim", "lpips")]
     if bad:

@@ -102,9 +102,13 @@ def test_eval_split_none_and_all(demo, tmp_path):
     assert res.exit_code == 2 and "--split train" in res.output and "Traceback" not in res.output
     res = run("eval", tmp_path / "none", "--split", "train", "--json")
     assert res.exit_code == 0 and '"num_views": 6' in res.output, res.output
+    assert json.loads((tmp_path / "none" / "metrics_train.json").read_text())["split"] == "train"
+    assert not (tmp_path / "none" / "metrics.json").exists()  # the train split has its own file
     res = run("fit", demo, "--out", tmp_path / "all", *CLI_FAST, "--eval-split", "all")
     assert res.exit_code == 0, res.output
     assert run_eval(tmp_path / "all")["num_views"] == 6  # every view, train ones included
+    run_eval(tmp_path / "all", split="train")
+    assert json.loads((tmp_path / "all" / "metrics.json").read_text())["split"] == "test"  # kept
     res = run("fit", demo, "--out", tmp_path / "bad", *CLI_FAST, "--eval-split", "some")
     assert res.exit_code == 2
 

@@ -1,8 +1,9 @@
 """`splatk eval`: render the held-out views of a run and measure them.
 
-Writes RUN/metrics.json: ``mean`` (psnr, ssim, lpips), ``per_view`` values, ``num_primitives``,
-``footprint_mb``, ``render_ms`` (median per view, wall clock, this machine) and how it was
-measured (backend, threads, LPIPS network).
+Writes RUN/metrics.json (the train split: RUN/metrics_train.json, so measuring the fit to the train
+views never replaces the held-out figures): ``mean`` (psnr, ssim, lpips), ``per_view`` values,
+``num_primitives``, ``footprint_mb``, ``render_ms`` (median per view, wall clock, this machine) and
+how it was measured (backend, threads, LPIPS network).
 """
 from __future__ import annotations
 
@@ -97,5 +98,10 @@ def run_eval(
         "color": meta["spec"]["color"],
         "warnings": sorted(set(warnings)),
     }
-    (run / "metrics.json").write_text(json.dumps(result, indent=2))
+    metrics_path(run, split).write_text(json.dumps(result, indent=2))
     return result
+
+
+def metrics_path(run: Path, split: str) -> Path:
+    """Where ``run_eval`` writes a split's metrics: metrics.json for test, metrics_train.json for train."""
+    return Path(run) / ("metrics.json" if split == "test" else f"metrics_{split}.json")
