@@ -1,6 +1,7 @@
 """`splatk bench SCENES... --out OUT`: a grid of methods over scenes, charts, stability matrix."""
 from __future__ import annotations
 
+import fnmatch
 import json
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from splatk.bench import (
     BenchConfig,
     load_bench_file,
     load_results,
+    method_id,
     run_bench,
     run_stability,
     table_rows,
@@ -47,6 +49,9 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 @click.option("--budget", multiple=True, help="Primitive budget(s) (repeat), or auto.")
 @click.option("--budget-bytes", multiple=True,
               help="Memory budget(s), e.g. 4MB (repeat): budget = (bytes - network bytes) // bytes per primitive.")
+@click.option("--only", multiple=True,
+              help="Run only the methods whose id matches this pattern (repeat; shell wildcards), e.g. "
+                   "'learned-k8-*' for one column of a preset's grid.")
 @click.option("--iters", type=int, help="Training iterations of every run.")
 @click.option("--time-budget", help="Wall-clock training budget of every run, e.g. 90s, 5m.")
 @click.option("--downscale", type=float, help="Image downscale factor.")
@@ -65,7 +70,7 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
               help="Run the stability matrix (kernels x conditions) instead of the method grid.")
 @click.option("--charts-only", is_flag=True, help="Only redraw the charts and table from OUT/results.")
 @click.option("--quiet", "-q", is_flag=True, help="No per-run progress lines.")
-def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_bytes, metrics, lpips_net,
+def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_bytes, only, metrics, lpips_net,
             no_scale_schedules, stability, charts_only, quiet, **flags):
     """Fit and evaluate every method on every SCENE into OUT; resumable (finished runs are
     skipped); draws PSNR vs render time / training time / footprint with the Pareto front.
@@ -97,6 +102,12 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
                    for o in _overrides(ks, color, budget, budget_bytes)]
         unique = {json.dumps(m, sort_keys=True): m for m in methods}  # e.g. YAML budgets replaced by one flag
         methods = list(unique.values())
+    if only:
+        ids = [method_id(m, defaults) for m in methods]
+        methods = [m for m, i in zip(methods, ids) if any(fnmatch.fnmatchcase(i, p) for p in only)]
+        if not methods:
+            raise click.BadParameter(f"no method id matches {', '.join(only)}; the ids are {', '.join(ids)}",
+                                     param_hint="--only")
     metric_names = tuple(m.strip() for m in (metrics or ",".join(data.get("metrics") or ["psnr", "ssim", "lpips"]))
                          .split(",") if m.strip())
     bad = [m for m in metric_names if m not in ("psnr", "ssim", "lpips")]

@@ -65,3 +65,15 @@ def test_bad_scene_is_one_line_error(tmp_path):
     res = CliRunner().invoke(cli, ["bench", str(tmp_path / "nope"), "--out", str(tmp_path / "o"),
                                    "--kernel", "gaussian"])
     assert res.exit_code == 2 and "does not exist" in res.stderr
+
+
+def test_only_runs_the_matching_columns_of_a_preset(scene, tmp_path):
+    res = _bench(scene, "--out", tmp_path, "--preset", "paper_tab5", "--only", "learned-k8-nopre*",
+                 "--only", "learned-k2-precosine*", "--iters", "2", "--budget", "50", "--threads", "1",
+                 "--metrics", "psnr", "-q")
+    ran = sorted(p.name for p in (tmp_path / "results").glob("*.json"))
+    assert ran == ["demo__learned-k2-precosine-sh-b50.json", "demo__learned-k8-nopre-sh-b50.json"], ran
+    assert "not paper Tab. 5's protocol" in res.stderr
+    bad = CliRunner().invoke(cli, ["bench", str(scene), "--out", str(tmp_path / "b"), "--preset", "paper_tab5",
+                                   "--only", "nothing-*"])
+    assert bad.exit_code == 2 and "no method id matches nothing-*" in bad.stderr and "learned-k8-nopre" in bad.stderr
