@@ -1,5 +1,5 @@
-"""3DGS's adaptive density control against Gaussian-MCMC at ADC's final primitive count (issue
-#32's check of `--strategy adc`).
+"""3DGS's adaptive density control against Gaussian-MCMC at ADC's final primitive count: the check
+that `--strategy adc` trains as 3DGS does.
 
     python benchmarks/adc_check.py OUT [--scene lego] [--downscale 4] [--iters 30000] [--arms adc,mcmc]
 
