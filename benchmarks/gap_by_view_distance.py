@@ -17,12 +17,15 @@ import json
 import math
 import re
 import statistics
+import sys
 from pathlib import Path
 
 import torch
 
-from learned_validation import scene_path
 from splatk.data import load_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script, also when imported
+from learned_validation import scene_path  # noqa: E402
 
 DOWNSCALE = {"7k": 2, "30k": 4}
 
