@@ -102,6 +102,9 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
                    for o in _overrides(ks, color, budget, budget_bytes)]
         unique = {json.dumps(m, sort_keys=True): m for m in methods}  # e.g. YAML budgets replaced by one flag
         methods = list(unique.values())
+    if only and stability:
+        raise click.BadParameter("picks methods of the grid; --stability runs its own kernels and conditions",
+                                 param_hint="--only")
     if only:
         ids = [method_id(m, defaults) for m in methods]
         methods = [m for m, i in zip(methods, ids) if any(fnmatch.fnmatchcase(i, p) for p in only)]

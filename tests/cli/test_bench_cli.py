@@ -77,3 +77,5 @@ def test_only_runs_the_matching_columns_of_a_preset(scene, tmp_path):
     bad = CliRunner().invoke(cli, ["bench", str(scene), "--out", str(tmp_path / "b"), "--preset", "paper_tab5",
                                    "--only", "nothing-*"])
     assert bad.exit_code == 2 and "no method id matches nothing-*" in bad.stderr and "learned-k8-nopre" in bad.stderr
+    bad = CliRunner().invoke(cli, ["bench", str(scene), "--out", str(tmp_path / "c"), "--stability", "--only", "x*"])
+    assert bad.exit_code == 2 and "--stability runs its own" in bad.stderr
