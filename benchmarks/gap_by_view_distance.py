@@ -25,9 +25,10 @@ import torch
 from splatk.data import load_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script, also when imported
-from learned_validation import scene_path  # noqa: E402
+from learned_validation import PROTOCOLS, scene_path  # noqa: E402
 
-DOWNSCALE = {"7k": 2, "30k": 4}
+#: each protocol's image downscale, as its fits ran
+DOWNSCALE = {name: float(opts[opts.index("--downscale") + 1]) for name, opts in PROTOCOLS.items()}
 
 
 def camera_pose(cam) -> tuple[torch.Tensor, torch.Tensor]:

@@ -17,8 +17,8 @@ Forward-facing scenes (``*_frontal``) are made under OUT/scenes by
 others are read from ``../shared/data``. Each (scene, kernel) is one ``splatk fit SCENE --out
 OUT/runs/PROTOCOL/SCENE_KERNEL --kernel KERNEL ... --threads 1`` and one ``splatk eval --metrics
 psnr --json``; a run folder that already has its ``eval.json`` is not run again, so the grid
-resumes. Each run's train views are measured too (``splatk eval --split train``, kept as
-``eval_train.json``): a kernel that loses on both splits lacks capacity at that budget, one that
+resumes. Each run's train views are measured too (``splatk eval --split train``, which writes the
+run's ``metrics_train.json``): a kernel that loses on both splits lacks capacity at that budget, one that
 loses on the test views only generalises worse. Prints the tables and writes
 OUT/learned_validation[_30k][_seedN].json (runs of a seed other than 0 under
 OUT/runs/PROTOCOL_seedN/).
@@ -77,11 +77,10 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json"], check=True,
                                    env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)
-    train = run / "eval_train.json"
+    train = run / "metrics_train.json"
     if not train.exists():  # seconds, not a fit: --table-only measures it too
-        evaluated = subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr", "--json"],
-                                   check=True, env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True, text=True)
-        train.write_text(evaluated.stdout)
+        subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr"], check=True,
+                       env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True)
     fit = json.loads((run / "fit.json").read_text())
     log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
     # the k the run used: --k auto writes the k it chose into the kernel options; a run made before
