@@ -8,6 +8,7 @@ every other setting default, under one of two protocols:
 
     python benchmarks/learned_validation.py OUT [--protocol 7k|30k] [--scenes juicebox_frontal,...]
         [--kernels gaussian,learned,learned-k2] [--seed 0] [--jobs 2] [--table-only]
+        [--device cuda] [--data DIR]
 
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k.
@@ -21,7 +22,10 @@ resumes. Each run's train views are measured too (``splatk eval --split train``,
 run's ``metrics_train.json``): a kernel that loses on both splits lacks capacity at that budget, one that
 loses on the test views only generalises worse. Prints the tables and writes
 OUT/learned_validation[_30k][_seedN].json (runs of a seed other than 0 under
-OUT/runs/PROTOCOL_seedN/).
+OUT/runs/PROTOCOL_seedN/). ``--device cuda`` fits on the GPU (the cuda backend; a GPU draws other
+random numbers than the CPU, so a seed's cell differs between them) and measures there too (the
+torch backend, which renders what the cpu backend does). ``--data`` points at the shared scenes
+where they are not at ``../shared/data``.
 """
 from __future__ import annotations
 
@@ -55,38 +59,42 @@ KERNELS = {
 }
 
 
-def scene_path(name: str, out: Path) -> Path:
+def scene_path(name: str, out: Path, data: Path) -> Path:
     if not name.endswith("_frontal"):
-        return DATA / name
+        return data / name
     made = out / "scenes" / name
     if not made.exists():
-        subprocess.run([sys.executable, str(HERE / "make_frontal_scene.py"), str(DATA / name[:-len("_frontal")]),
+        subprocess.run([sys.executable, str(HERE / "make_frontal_scene.py"), str(data / name[:-len("_frontal")]),
                         str(made), "--fraction", "0.33"], check=True)
     return made
 
 
-def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_only: bool = False) -> dict | None:
+def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_only: bool = False,
+            device: str = "cpu", data: Path = DATA) -> dict | None:
     run = out / "runs" / (protocol if seed == 0 else f"{protocol}_seed{seed}") / f"{scene}_{kernel}"
     result = run / "eval.json"
     if not result.exists():
         if table_only:
             return None
         env = dict(os.environ, OMP_NUM_THREADS="1")
-        subprocess.run(["splatk", "fit", str(scene_path(scene, out)), "--out", str(run), "--overwrite",
-                        *KERNELS[kernel], *PROTOCOLS[protocol], "--seed", str(seed), "--threads", "1", "-q"], check=True, env=env)
-        evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json"], check=True,
-                                   env=env, capture_output=True, text=True)
+        subprocess.run(["splatk", "fit", str(scene_path(scene, out, data)), "--out", str(run), "--overwrite",
+                        *KERNELS[kernel], *PROTOCOLS[protocol], "--seed", str(seed), "--threads", "1",
+                        "--device", device, "-q"], check=True, env=env)
+        evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json", "--device", device],
+                                   check=True, env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)
     train = run / "metrics_train.json"
     if not train.exists():  # seconds, not a fit: --table-only measures it too
-        subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr"], check=True,
-                       env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True)
+        subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr", "--device", device],
+                       check=True, env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True)
     fit = json.loads((run / "fit.json").read_text())
     log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
     # the k the run used: --k auto writes the k it chose into the kernel options; a run made before
     # decision 0105 without --k has none and took k = 2
-    k = yaml.safe_load((run / "config.yaml").read_text())["settings"]["kernel_options"].get("k", 2)
+    settings = yaml.safe_load((run / "config.yaml").read_text())["settings"]
+    k = settings["kernel_options"].get("k", 2)
     return {"scene": scene, "kernel": kernel, "set": "tuning" if scene in TUNING else "validation",
+            "device": settings["device"],
             "test_psnr": json.loads(result.read_text())["mean"]["psnr"],
             "train_psnr": json.loads(train.read_text())["mean"]["psnr"], "primitives": fit["num_primitives"],
             "k": k if kernel.startswith("learned") else None,
@@ -119,6 +127,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--table-only", action="store_true",
                     help="fit nothing: tabulate the cells that have run (the others are left out)")
+    ap.add_argument("--device", default="cpu", help="torch device to fit on: cpu or cuda")
+    ap.add_argument("--data", type=Path, default=DATA, help="folder of the shared scenes")
     args = ap.parse_args()
     kernels, scenes = args.kernels.split(","), args.scenes.split(",")
     unknown = sorted(set(kernels) - set(KERNELS))
@@ -126,7 +136,8 @@ def main() -> None:
         ap.error(f"unknown kernel(s) {', '.join(unknown)}; choose from {', '.join(KERNELS)}")
     cells = [(s, k) for s in scenes for k in kernels]
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only), cells)
+        rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only,
+                                                    args.device, args.data), cells)
                 if r is not None]
     for split in ("test", "train"):
         print(f"\n{split} PSNR (dB)")
@@ -134,6 +145,7 @@ def main() -> None:
     doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed, "rows": rows}
     name = "learned_validation" + ("" if args.protocol == "7k" else f"_{args.protocol}") \
         + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"
+    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / name).write_text(json.dumps(doc, indent=1))
 
 
