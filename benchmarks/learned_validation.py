@@ -59,7 +59,7 @@ KERNELS = {
 }
 
 
-def scene_path(name: str, out: Path, data: Path) -> Path:
+def scene_path(name: str, out: Path, data: Path = DATA) -> Path:
     if not name.endswith("_frontal"):
         return data / name
     made = out / "scenes" / name
