@@ -9,6 +9,7 @@ every other setting default, under one of two protocols:
     python benchmarks/learned_validation.py OUT [--protocol 7k|30k] [--scenes juicebox_frontal,...]
         [--kernels gaussian,learned,learned-k2] [--seed 0] [--jobs 2] [--table-only]
         [--device cuda] [--data DIR]
+    python benchmarks/learned_validation.py OUT --protocol 30k --over-seeds [--scenes ...] [--kernels ...]
 
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k.
@@ -26,12 +27,20 @@ OUT/runs/PROTOCOL_seedN/). ``--device cuda`` fits on the GPU (the cuda backend; 
 random numbers than the CPU, so a seed's cell differs between them) and measures there too (the
 torch backend, which renders what the cpu backend does). ``--data`` points at the shared scenes
 where they are not at ``../shared/data``.
+
+``--over-seeds`` fits nothing: for every seed whose runs are under OUT/runs/ it pairs each learned
+cell with the Gaussian of the same scene and seed, and prints per scene the seeds, each kernel's
+mean and the mean difference with its standard error over the seeds (the spread of the
+differences over sqrt(seeds)); then the average of the scenes' mean differences per set. Writes
+OUT/learned_validation[_30k]_over_seeds.json.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
+import statistics
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -116,6 +125,61 @@ def print_table(rows: list[dict], scenes: list[str], kernels: list[str], key: st
               + " ".join(f"{got[k][key]:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
 
 
+def seeds_run(out: Path, protocol: str) -> list[int]:
+    """The seeds that have a run folder for ``protocol`` under OUT/runs/."""
+    found = []
+    for folder in sorted((out / "runs").glob(f"{protocol}*")):
+        match = re.fullmatch(re.escape(protocol) + r"(?:_seed(\d+))?", folder.name)
+        if match:
+            found.append(int(match.group(1) or 0))
+    return sorted(found)
+
+
+def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str]) -> dict:
+    """Each learned kernel against the Gaussian of the same scene and seed, over every seed run."""
+    learned = [k for k in kernels if k != "gaussian"]
+    seeds = seeds_run(out, protocol)
+    per_scene = []
+    for scene in scenes:
+        for kernel in learned:
+            pairs = []
+            for seed in seeds:
+                gaussian = run_one(scene, "gaussian", protocol, seed, out, table_only=True)
+                other = run_one(scene, kernel, protocol, seed, out, table_only=True)
+                if gaussian and other:
+                    pairs.append((seed, gaussian["test_psnr"], other["test_psnr"]))
+            if not pairs:
+                continue
+            gaps = [o - g for _, g, o in pairs]
+            per_scene.append({
+                "scene": scene, "kernel": kernel, "set": "tuning" if scene in TUNING else "validation",
+                "seeds": [s for s, _, _ in pairs], "gaussian_mean": statistics.mean(g for _, g, _ in pairs),
+                "kernel_mean": statistics.mean(o for _, _, o in pairs), "gap_mean": statistics.mean(gaps),
+                # None for one seed: no spread to measure
+                "gap_standard_error": statistics.stdev(gaps) / len(gaps) ** 0.5 if len(gaps) > 1 else None})
+    averages = []
+    for kernel in learned:
+        for name in ("tuning", "validation"):
+            rows = [r for r in per_scene if r["kernel"] == kernel and r["set"] == name]
+            if rows:
+                averages.append({"kernel": kernel, "set": name, "scenes": len(rows),
+                                 "gap_mean": statistics.mean(r["gap_mean"] for r in rows),
+                                 "scenes_below_gaussian": sum(r["gap_mean"] < 0 for r in rows)})
+    return {"protocol": protocol, "seeds_found": seeds, "per_scene": per_scene, "averages": averages}
+
+
+def print_over_seeds(doc: dict) -> None:
+    print(f"{'scene':<18} {'set':<10} {'kernel':<11} {'seeds':>7} {'gaussian':>9} {'kernel':>9} "
+          f"{'difference':>11} {'+/- s.e.':>9}")
+    for r in doc["per_scene"]:
+        error = "-" if r["gap_standard_error"] is None else f"{r['gap_standard_error']:.2f}"
+        print(f"{r['scene']:<18} {r['set']:<10} {r['kernel']:<11} {len(r['seeds']):>7} {r['gaussian_mean']:>9.2f} "
+              f"{r['kernel_mean']:>9.2f} {r['gap_mean']:>+11.2f} {error:>9}")
+    for a in doc["averages"]:
+        print(f"{a['kernel']} on the {a['set']} scenes: {a['gap_mean']:+.2f} dB on average over {a['scenes']} "
+              f"scenes' seed means, below the Gaussian on {a['scenes_below_gaussian']}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path)
@@ -129,11 +193,19 @@ def main() -> None:
                     help="fit nothing: tabulate the cells that have run (the others are left out)")
     ap.add_argument("--device", default="cpu", help="torch device to fit on: cpu or cuda")
     ap.add_argument("--data", type=Path, default=DATA, help="folder of the shared scenes")
+    ap.add_argument("--over-seeds", action="store_true",
+                    help="fit nothing: each scene's mean difference to the Gaussian over every seed run")
     args = ap.parse_args()
     kernels, scenes = args.kernels.split(","), args.scenes.split(",")
     unknown = sorted(set(kernels) - set(KERNELS))
     if unknown:
         ap.error(f"unknown kernel(s) {', '.join(unknown)}; choose from {', '.join(KERNELS)}")
+    suffix = "" if args.protocol == "7k" else f"_{args.protocol}"
+    if args.over_seeds:
+        doc = over_seeds(args.out, args.protocol, scenes, kernels)
+        print_over_seeds(doc)
+        (args.out / f"learned_validation{suffix}_over_seeds.json").write_text(json.dumps(doc, indent=1))
+        return
     cells = [(s, k) for s in scenes for k in kernels]
     with ThreadPoolExecutor(args.jobs) as pool:
         rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only,
@@ -143,8 +215,7 @@ def main() -> None:
         print(f"\n{split} PSNR (dB)")
         print_table(rows, scenes, kernels, f"{split}_psnr")
     doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed, "rows": rows}
-    name = "learned_validation" + ("" if args.protocol == "7k" else f"_{args.protocol}") \
-        + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"
+    name = f"learned_validation{suffix}" + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / name).write_text(json.dumps(doc, indent=1))
 
