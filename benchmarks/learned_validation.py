@@ -68,6 +68,10 @@ KERNELS = {
 }
 
 
+def set_of(scene: str) -> str:
+    return "tuning" if scene in TUNING else "validation"
+
+
 def scene_path(name: str, out: Path, data: Path = DATA) -> Path:
     if not name.endswith("_frontal"):
         return data / name
@@ -102,7 +106,7 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
     # decision 0105 without --k has none and took k = 2
     settings = yaml.safe_load((run / "config.yaml").read_text())["settings"]
     k = settings["kernel_options"].get("k", 2)
-    return {"scene": scene, "kernel": kernel, "set": "tuning" if scene in TUNING else "validation",
+    return {"scene": scene, "kernel": kernel, "set": set_of(scene),
             "device": settings["device"],
             "test_psnr": json.loads(result.read_text())["mean"]["psnr"],
             "train_psnr": json.loads(train.read_text())["mean"]["psnr"], "primitives": fit["num_primitives"],
@@ -121,7 +125,7 @@ def print_table(rows: list[dict], scenes: list[str], kernels: list[str], key: st
             continue
         gaps = "".join(f"  {got[k][key] - got['gaussian'][key]:>+24.2f}" if k in got and "gaussian" in got
                        else f"  {'-':>24}" for k in learned if "gaussian" in kernels)
-        print(f"{scene:<18} {'tuning' if scene in TUNING else 'validation':<10} "
+        print(f"{scene:<18} {set_of(scene):<10} "
               + " ".join(f"{got[k][key]:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
 
 
@@ -152,7 +156,7 @@ def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str]) 
                 continue
             gaps = [o - g for _, g, o in pairs]
             per_scene.append({
-                "scene": scene, "kernel": kernel, "set": "tuning" if scene in TUNING else "validation",
+                "scene": scene, "kernel": kernel, "set": set_of(scene),
                 "seeds": [s for s, _, _ in pairs], "gaussian_mean": statistics.mean(g for _, g, _ in pairs),
                 "kernel_mean": statistics.mean(o for _, _, o in pairs), "gap_mean": statistics.mean(gaps),
                 # None for one seed: no spread to measure
