@@ -13,7 +13,10 @@ For each run (a `splatk fit` folder with its model.pt), with the scene loaded as
   primitives' median depth composite over the image on their own, as a mean over pixels (a veil:
   far background primitives cover whole views by design, near ones should not), and the part of
   it drawn by switched primitives alone; beside it the view's test PSNR from the run's eval.json
-  where there is one.
+  where there is one, the PSNR of the render with the switched primitives left out (black
+  background, so it can differ from eval's figure), and the number of primitives whose d(0) in
+  the test view is above their highest in any train view by more than 0.2 (Phi_proj
+  extrapolating to the new view).
 
 Prints a table per run and, with ``--json``, writes every figure.
 """
@@ -34,6 +37,8 @@ from splatk.models.io import load_model
 NEAR_FRACTION = 0.25
 #: d(0) below OFF in one train view and above ON in another: switched by the view
 OFF, ON = 0.1, 0.9
+#: d(0) in a test view this far above its highest in the train views: a new brightness
+BRIGHTER = 0.2
 
 
 def centres(model, backend, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -61,6 +66,18 @@ def alpha_of(model, backend, cam, keep: torch.Tensor) -> float:
     return float(out.alpha.mean())
 
 
+def psnr_without(model, backend, cam, drop: torch.Tensor) -> float:
+    """PSNR of the view rendered on black with the primitives in ``drop`` left out."""
+    logits = model.prims["opacity_logits"]
+    saved = logits.data.clone()
+    logits.data[drop] = -30.0
+    try:
+        image = model.render(cam, torch.zeros(3), backend=backend).image.clamp(0, 1)
+    finally:
+        logits.data.copy_(saved)
+    return float(-10 * torch.log10(((image - cam.image_float()) ** 2).mean()))
+
+
 @torch.no_grad()
 def analyse(run: Path, scene_path: Path | None) -> dict:
     model, meta = load_model(run / "model.pt")
@@ -81,11 +98,14 @@ def analyse(run: Path, scene_path: Path | None) -> dict:
         psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
     views = []
     for cam in scene.test:
-        visible, _, depth = centres(model, backend, cam)
+        visible, centre, depth = centres(model, backend, cam)
         near = visible & (depth < NEAR_FRACTION * depth[visible].median())
         views.append({"view": cam.name, "psnr": psnr.get(cam.name), "near_primitives": int(near.sum()),
                       "near_alpha": alpha_of(model, backend, cam, near),
-                      "near_switched_alpha": alpha_of(model, backend, cam, near & switched)})
+                      "near_switched_alpha": alpha_of(model, backend, cam, near & switched),
+                      "psnr_on_black": psnr_without(model, backend, cam, torch.zeros_like(switched)),
+                      "psnr_on_black_without_switched": psnr_without(model, backend, cam, switched),
+                      "brighter_than_in_train": int((visible & (centre > highest + BRIGHTER)).sum())})
     return {"run": str(run), "kernel": meta["spec"]["kernel"], "primitives": n,
             "switched_share": float(switched.sum()) / n,
             "mean_centre_spread": float((highest - lowest)[seen].mean()) if seen.any() else 0.0,
@@ -102,11 +122,13 @@ def main() -> None:
     for r in rows:
         print(f"{r['run']}: {r['kernel']}, {r['primitives']} primitives, switched by view "
               f"{100 * r['switched_share']:.1f} %, mean d(0) spread {r['mean_centre_spread']:.3f}")
-        print(f"  {'test view':<32} {'PSNR':>6} {'near':>6} {'near alpha':>11} {'of it switched':>15}")
+        print(f"  {'test view':<32} {'PSNR':>6} {'near':>6} {'near alpha':>11} {'of it switched':>15} "
+              f"{'on black':>9} {'w/o switched':>13} {'brighter':>9}")
         for v in r["test_views"]:
             psnr = "" if v["psnr"] is None else f"{v['psnr']:.2f}"
             print(f"  {v['view'][-32:]:<32} {psnr:>6} {v['near_primitives']:>6} {v['near_alpha']:>11.3f} "
-                  f"{v['near_switched_alpha']:>15.3f}")
+                  f"{v['near_switched_alpha']:>15.3f} {v['psnr_on_black']:>9.2f} "
+                  f"{v['psnr_on_black_without_switched']:>13.2f} {v['brighter_than_in_train']:>9}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 
