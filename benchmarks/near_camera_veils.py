@@ -31,6 +31,7 @@ import torch
 from splatk import backends
 from splatk.data import load_scene
 from splatk.kernels.base import ViewContext
+from splatk.metrics import psnr
 from splatk.models.io import load_model
 
 #: "near": nearer than this fraction of the visible primitives' median depth
@@ -54,28 +55,26 @@ def centres(model, backend, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return proj.visible, centre, proj.depths
 
 
-def alpha_of(model, backend, cam, keep: torch.Tensor) -> float:
-    """Mean alpha over the image of the primitives in ``keep`` rendered on their own."""
-    logits = model.prims["opacity_logits"]
-    saved = logits.data.clone()
-    logits.data[~keep] = -30.0  # the others drop out of the render
-    try:
-        out = model.render(cam, torch.zeros(3), backend=backend)
-    finally:
-        logits.data.copy_(saved)
-    return float(out.alpha.mean())
-
-
-def psnr_without(model, backend, cam, drop: torch.Tensor) -> float:
-    """PSNR of the view rendered on black with the primitives in ``drop`` left out."""
+def render_without(model, backend, cam, drop: torch.Tensor):
+    """The view rendered on black with the primitives in ``drop`` left out."""
     logits = model.prims["opacity_logits"]
     saved = logits.data.clone()
     logits.data[drop] = -30.0
     try:
-        image = model.render(cam, torch.zeros(3), backend=backend).image.clamp(0, 1)
+        return model.render(cam, torch.zeros(3), backend=backend)
     finally:
         logits.data.copy_(saved)
-    return float(-10 * torch.log10(((image - cam.image_float()) ** 2).mean()))
+
+
+def alpha_of(model, backend, cam, keep: torch.Tensor) -> float:
+    """Mean alpha over the image of the primitives in ``keep`` rendered on their own."""
+    return float(render_without(model, backend, cam, ~keep).alpha.mean())
+
+
+def psnr_without(model, backend, cam, drop: torch.Tensor) -> float:
+    """PSNR of the view rendered on black with the primitives in ``drop`` left out."""
+    image = render_without(model, backend, cam, drop).image.clamp(0, 1)
+    return float(psnr(image, cam.image_float()))
 
 
 @torch.no_grad()
@@ -93,14 +92,14 @@ def analyse(run: Path, scene_path: Path | None) -> dict:
     seen = highest >= 0
     switched = (lowest < OFF) & (highest > ON)
     evaluated = run / "eval.json"
-    psnr = {}
+    eval_psnr = {}
     if evaluated.exists():
-        psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
+        eval_psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
     views = []
     for cam in scene.test:
         visible, centre, depth = centres(model, backend, cam)
         near = visible & (depth < NEAR_FRACTION * depth[visible].median())
-        views.append({"view": cam.name, "psnr": psnr.get(cam.name), "near_primitives": int(near.sum()),
+        views.append({"view": cam.name, "psnr": eval_psnr.get(cam.name), "near_primitives": int(near.sum()),
                       "near_alpha": alpha_of(model, backend, cam, near),
                       "near_switched_alpha": alpha_of(model, backend, cam, near & switched),
                       "psnr_on_black": psnr_without(model, backend, cam, torch.zeros_like(switched)),
@@ -125,8 +124,8 @@ def main() -> None:
         print(f"  {'test view':<32} {'PSNR':>6} {'near':>6} {'near alpha':>11} {'of it switched':>15} "
               f"{'on black':>9} {'w/o switched':>13} {'brighter':>9}")
         for v in r["test_views"]:
-            psnr = "" if v["psnr"] is None else f"{v['psnr']:.2f}"
-            print(f"  {v['view'][-32:]:<32} {psnr:>6} {v['near_primitives']:>6} {v['near_alpha']:>11.3f} "
+            shown = "" if v["psnr"] is None else f"{v['psnr']:.2f}"
+            print(f"  {v['view'][-32:]:<32} {shown:>6} {v['near_primitives']:>6} {v['near_alpha']:>11.3f} "
                   f"{v['near_switched_alpha']:>15.3f} {v['psnr_on_black']:>9.2f} "
                   f"{v['psnr_on_black_without_switched']:>13.2f} {v['brighter_than_in_train']:>9}")
     if args.json:
