@@ -6,6 +6,10 @@ import importlib.util
 from pathlib import Path
 
 import pytest
+import torch
+
+from splatk import backends
+from tests.scenes import orbit_cameras, random_model
 
 SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
 
@@ -16,3 +20,38 @@ def test_benchmark_script_imports(script):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)  # runs the imports and definitions, not main()
     assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
+
+
+def _load(stem: str):
+    script = next(s for s in SCRIPTS if s.stem == stem)
+    spec = importlib.util.spec_from_file_location(f"benchmark_{stem}", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@torch.no_grad()
+def test_learned_view_dependence_hooks():
+    """The cap never binds in a view it was recorded in, the view average of one view is that view,
+    another view is changed by both, and the model renders as fitted once the hook is gone."""
+    script = _load("learned_view_dependence")
+    model = random_model(40, seed=3, kernel="learned")
+    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
+                                                   generator=torch.Generator().manual_seed(0))
+    seen, other = orbit_cameras(4, size=32)[0], orbit_cameras(4, size=32)[2]
+    backend = backends.get("torch")
+    bg = torch.zeros(3)
+
+    def image(cam):
+        return model.render(cam, bg, backend=backend).image
+
+    fitted_seen, fitted_other = image(seen), image(other)
+    train = script.TrainViewProfiles(model.num_primitives, model.kernel.k)
+    with script.profile_hook(model, train.record):
+        assert torch.equal(image(seen), fitted_seen)
+    for hook in (train.capped, train.view_averaged):
+        with script.profile_hook(model, hook):
+            assert torch.allclose(image(seen), fitted_seen, atol=1e-6)
+            assert not torch.allclose(image(other), fitted_other, atol=1e-4)
+    assert script.INDEX_KEY not in model.prims
+    assert torch.equal(image(other), fitted_other)
