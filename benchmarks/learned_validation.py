@@ -14,9 +14,9 @@ every other setting default, under one of two protocols:
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k.
 
-Forward-facing scenes (``*_frontal``) are made under OUT/scenes by
-``benchmarks/make_frontal_scene.py`` from the shared 360-degree capture of the same name; the
-others are read from ``../shared/data``. Each (scene, kernel) is one ``splatk fit SCENE --out
+Forward-facing scenes (``*_frontal``, ``juicebox_arc2``: ``MADE_SCENES``) are made under OUT/scenes
+by ``benchmarks/make_frontal_scene.py`` from a shared 360-degree capture; the others are read from
+``../shared/data``. Each (scene, kernel) is one ``splatk fit SCENE --out
 OUT/runs/PROTOCOL/SCENE_KERNEL --kernel KERNEL ... --threads 1`` and one ``splatk eval --metrics
 psnr --json``; a run folder that already has its ``eval.json`` is not run again, so the grid
 resumes. Each run's train views are measured too (``splatk eval --split train``, which writes the
@@ -50,9 +50,14 @@ import yaml
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data"
-#: decision 0100's split (juicebox_frontal and bonsai_frontal chose values of decision 0101/0102)
-TUNING = ("cup", "bonsai_frontal", "juicebox_frontal")
-VALIDATION = ("beer_can_frontal", "juicebox", "beer_can", "kangaroo")
+#: decision 0100's split (juicebox_frontal and bonsai_frontal chose values of decision 0101/0102,
+#: beer_can_frontal of decision 0108, which made juicebox_arc2 to validate on)
+TUNING = ("cup", "bonsai_frontal", "juicebox_frontal", "beer_can_frontal")
+VALIDATION = ("juicebox_arc2", "juicebox", "beer_can", "kangaroo")
+#: forward-facing scenes made from a shared 360-degree capture: name -> (capture, --start of the
+#: reference arc); juicebox_arc2 shares none of its views with juicebox_frontal
+MADE_SCENES = {"juicebox_frontal": ("juicebox", 0), "bonsai_frontal": ("bonsai", 0),
+               "beer_can_frontal": ("beer_can", 0), "juicebox_arc2": ("juicebox", 32)}
 #: each protocol's fit options
 PROTOCOLS = {
     "7k": ["--iters", "7000", "--downscale", "2", "--budget", "20000"],
@@ -73,12 +78,13 @@ def set_of(scene: str) -> str:
 
 
 def scene_path(name: str, out: Path, data: Path = DATA) -> Path:
-    if not name.endswith("_frontal"):
+    if name not in MADE_SCENES:
         return data / name
     made = out / "scenes" / name
     if not made.exists():
-        subprocess.run([sys.executable, str(HERE / "make_frontal_scene.py"), str(data / name[:-len("_frontal")]),
-                        str(made), "--fraction", "0.33"], check=True)
+        capture, start = MADE_SCENES[name]
+        subprocess.run([sys.executable, str(HERE / "make_frontal_scene.py"), str(data / capture), str(made),
+                        "--fraction", "0.33", "--start", str(start)], check=True)
     return made
 
 
