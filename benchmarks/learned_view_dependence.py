@@ -37,6 +37,7 @@ from torch import nn
 from splatk import backends
 from splatk.backends import Profile
 from splatk.data import load_scene
+from splatk.functional.projection import quats_to_rotmats
 from splatk.kernels import ViewContext
 from splatk.metrics import psnr
 from splatk.models.io import load_model
@@ -48,13 +49,10 @@ TURN_DEG = 10.0
 
 
 def random_rotations(n: int, degrees: float, generator: torch.Generator) -> torch.Tensor:
-    """``n`` rotations [n, 3, 3] by ``degrees`` about uniformly random axes (Rodrigues' formula)."""
+    """``n`` rotations [n, 3, 3] by ``degrees`` about uniformly random axes."""
     axis = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator), dim=1)
-    x, y, z = axis.unbind(1)
-    zero = torch.zeros_like(x)
-    cross = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], 1).reshape(n, 3, 3)
-    angle = math.radians(degrees)
-    return torch.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
+    half = math.radians(degrees) / 2
+    return quats_to_rotmats(torch.cat([torch.full((n, 1), math.cos(half)), math.sin(half) * axis], 1))
 
 
 @torch.no_grad()

@@ -3,6 +3,7 @@ script was not updated for fails here rather than when someone reruns the benchm
 from __future__ import annotations
 
 import importlib.util
+import math
 from pathlib import Path
 
 import pytest
@@ -14,27 +15,25 @@ from tests.scenes import orbit_cameras, random_model
 SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
 
 
-@pytest.mark.parametrize("script", SCRIPTS, ids=[s.stem for s in SCRIPTS])
-def test_benchmark_script_imports(script):
+def load_script(script: Path):
+    """The benchmark script as a module: its imports and definitions run, not main()."""
     spec = importlib.util.spec_from_file_location(f"benchmark_{script.stem}", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)  # runs the imports and definitions, not main()
-    assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
-
-
-def _load(stem: str):
-    script = next(s for s in SCRIPTS if s.stem == stem)
-    spec = importlib.util.spec_from_file_location(f"benchmark_{stem}", script)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=[s.stem for s in SCRIPTS])
+def test_benchmark_script_imports(script):
+    module = load_script(script)
+    assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
 
 
 @torch.no_grad()
 def test_learned_view_dependence_hooks():
     """The cap never binds in a view it was recorded in, the view average of one view is that view,
     another view is changed by both, and the model renders as fitted once the hook is gone."""
-    script = _load("learned_view_dependence")
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_view_dependence"))
     model = random_model(40, seed=3, kernel="learned")
     model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
                                                    generator=torch.Generator().manual_seed(0))
@@ -55,3 +54,11 @@ def test_learned_view_dependence_hooks():
             assert not torch.allclose(image(other), fitted_other, atol=1e-4)
     assert script.INDEX_KEY not in model.prims
     assert torch.equal(image(other), fitted_other)
+
+
+def test_learned_view_dependence_turns_by_the_angle_asked():
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_view_dependence"))
+    turns = script.random_rotations(100, 10.0, torch.Generator().manual_seed(0))
+    assert torch.allclose(turns @ turns.transpose(1, 2), torch.eye(3).expand(100, 3, 3), atol=1e-6)
+    cos_angle = (turns.diagonal(dim1=1, dim2=2).sum(1) - 1.0) / 2.0  # trace = 1 + 2 cos(angle)
+    assert torch.allclose(cos_angle, torch.full((100,), math.cos(math.radians(10.0))), atol=1e-6)
