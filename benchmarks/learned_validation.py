@@ -217,6 +217,9 @@ def main() -> None:
         (args.out / f"learned_validation{suffix}_over_seeds.json").write_text(json.dumps(doc, indent=1))
         return
     cells = [(s, k) for s in scenes for k in kernels]
+    if not args.table_only:
+        for scene in scenes:  # made once here: parallel cells of one scene would each make it
+            scene_path(scene, args.out, args.data)
     with ThreadPoolExecutor(args.jobs) as pool:
         rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only,
                                                     args.device, args.data), cells)

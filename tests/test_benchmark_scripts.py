@@ -62,3 +62,25 @@ def test_learned_view_dependence_turns_by_the_angle_asked():
     assert torch.allclose(turns @ turns.transpose(1, 2), torch.eye(3).expand(100, 3, 3), atol=1e-6)
     cos_angle = (turns.diagonal(dim1=1, dim2=2).sum(1) - 1.0) / 2.0  # trace = 1 + 2 cos(angle)
     assert torch.allclose(cos_angle, torch.full((100,), math.cos(math.radians(10.0))), atol=1e-6)
+
+
+def test_learned_validation_makes_each_scene_once_before_parallel_cells(tmp_path, monkeypatch):
+    """Two cells of one made scene run in parallel; each making the scene would have two
+    processes write the same folder at once."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    made = []
+
+    def fake_run(cmd, **kwargs):
+        if str(cmd[1]).endswith("make_frontal_scene.py"):
+            made.append(cmd[3])
+            Path(cmd[3]).mkdir(parents=True)
+        return None
+
+    fitted = []
+    monkeypatch.setattr(script.subprocess, "run", fake_run)
+    monkeypatch.setattr(script, "run_one", lambda scene, kernel, *a, **k: fitted.append((scene, kernel)))
+    monkeypatch.setattr("sys.argv", ["learned_validation.py", str(tmp_path), "--scenes", "juicebox_arc2",
+                                     "--kernels", "gaussian,learned", "--jobs", "2"])
+    script.main()
+    assert made == [str(tmp_path / "scenes" / "juicebox_arc2")]
+    assert sorted(fitted) == [("juicebox_arc2", "gaussian"), ("juicebox_arc2", "learned")]
