@@ -23,16 +23,19 @@ resumes. Each run's train views are measured too (``splatk eval --split train``,
 run's ``metrics_train.json``): a kernel that loses on both splits lacks capacity at that budget, one that
 loses on the test views only generalises worse. Prints the tables and writes
 OUT/learned_validation[_30k][_seedN].json (runs of a seed other than 0 under
-OUT/runs/PROTOCOL_seedN/). ``--device cuda`` fits on the GPU (the cuda backend; a GPU draws other
+OUT/runs/PROTOCOL_seedN/); the rows of scenes and kernels not run this time stay in that file, so a
+grid run in parts ends with every part in it. ``--device cuda`` fits on the GPU (the cuda backend; a GPU draws other
 random numbers than the CPU, so a seed's cell differs between them) and measures there too (the
 torch backend, which renders what the cpu backend does). ``--data`` points at the shared scenes
 where they are not at ``../shared/data``.
 
-``--over-seeds`` fits nothing: for every seed whose runs are under OUT/runs/ it pairs each learned
-cell with the Gaussian of the same scene and seed, and prints per scene the seeds, each kernel's
+``--over-seeds`` fits nothing: for every seed whose runs are under OUT/runs/ or whose result file
+is in OUT it pairs each learned cell (its run folder, else its row in the result file) with the
+Gaussian of the same scene and seed, and prints per scene the seeds, each kernel's
 mean and the mean difference with its standard error over the seeds (the spread of the
 differences over sqrt(seeds)); then the average of the scenes' mean differences per set. Writes
-OUT/learned_validation[_30k]_over_seeds.json.
+OUT/learned_validation[_30k]_over_seeds.json. ``OUT = benchmarks/results`` tabulates the
+committed result files.
 """
 from __future__ import annotations
 
@@ -135,13 +138,39 @@ def print_table(rows: list[dict], scenes: list[str], kernels: list[str], key: st
               + " ".join(f"{got[k][key]:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
 
 
+def result_file(out: Path, protocol: str, seed: int) -> Path:
+    """OUT/learned_validation[_30k][_seedN].json: the rows of one protocol and seed."""
+    suffix = "" if protocol == "7k" else f"_{protocol}"
+    return out / (f"learned_validation{suffix}" + ("" if seed == 0 else f"_seed{seed}") + ".json")
+
+
+def saved_rows(out: Path, protocol: str, seed: int) -> dict[tuple[str, str], dict]:
+    """The rows of the seed's result file by (scene, kernel); {} without one."""
+    path = result_file(out, protocol, seed)
+    if not path.is_file():
+        return {}
+    return {(r["scene"], r["kernel"]): r for r in json.loads(path.read_text())["rows"]}
+
+
+def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
+    """``old`` with each (scene, kernel) that ``new`` has replaced, and ``new``'s others added: a
+    grid run in parts (one scene at a time) keeps every part in its result file."""
+    fresh = {(r["scene"], r["kernel"]) for r in new}
+    return [r for r in old if (r["scene"], r["kernel"]) not in fresh] + new
+
+
 def seeds_run(out: Path, protocol: str) -> list[int]:
-    """The seeds that have a run folder for ``protocol`` under OUT/runs/."""
-    found = []
+    """The seeds that have a run folder for ``protocol`` under OUT/runs/ or a result file in OUT."""
+    found = set()
     for folder in sorted((out / "runs").glob(f"{protocol}*")):
         match = re.fullmatch(re.escape(protocol) + r"(?:_seed(\d+))?", folder.name)
         if match:
-            found.append(int(match.group(1) or 0))
+            found.add(int(match.group(1) or 0))
+    suffix = "" if protocol == "7k" else f"_{protocol}"
+    for path in out.glob(f"learned_validation{suffix}*.json"):
+        match = re.fullmatch(f"learned_validation{suffix}" + r"(?:_seed(\d+))?\.json", path.name)
+        if match:
+            found.add(int(match.group(1) or 0))
     return sorted(found)
 
 
@@ -149,13 +178,16 @@ def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str]) 
     """Each learned kernel against the Gaussian of the same scene and seed, over every seed run."""
     learned = [k for k in kernels if k != "gaussian"]
     seeds = seeds_run(out, protocol)
+    saved = {seed: saved_rows(out, protocol, seed) for seed in seeds}
     per_scene = []
     for scene in scenes:
         for kernel in learned:
             pairs = []
             for seed in seeds:
-                gaussian = run_one(scene, "gaussian", protocol, seed, out, table_only=True)
-                other = run_one(scene, kernel, protocol, seed, out, table_only=True)
+                # a run folder where there is one, else the row its grid saved
+                gaussian = (run_one(scene, "gaussian", protocol, seed, out, table_only=True)
+                            or saved[seed].get((scene, "gaussian")))
+                other = run_one(scene, kernel, protocol, seed, out, table_only=True) or saved[seed].get((scene, kernel))
                 if gaussian and other:
                     pairs.append((seed, gaussian["test_psnr"], other["test_psnr"]))
             if not pairs:
@@ -227,10 +259,12 @@ def main() -> None:
     for split in ("test", "train"):
         print(f"\n{split} PSNR (dB)")
         print_table(rows, scenes, kernels, f"{split}_psnr")
-    doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed, "rows": rows}
-    name = f"learned_validation{suffix}" + ("" if args.seed == 0 else f"_seed{args.seed}") + ".json"
+    path = result_file(args.out, args.protocol, args.seed)
+    old = list(saved_rows(args.out, args.protocol, args.seed).values())
+    doc = {"protocol": args.protocol, "fit_options": PROTOCOLS[args.protocol], "seed": args.seed,
+           "rows": merge_rows(old, rows)}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / name).write_text(json.dumps(doc, indent=1))
+    path.write_text(json.dumps(doc, indent=1))
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ script was not updated for fails here rather than when someone reruns the benchm
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 from pathlib import Path
 
@@ -84,3 +85,34 @@ def test_learned_validation_makes_each_scene_once_before_parallel_cells(tmp_path
     script.main()
     assert made == [str(tmp_path / "scenes" / "juicebox_arc2")]
     assert sorted(fitted) == [("juicebox_arc2", "gaussian"), ("juicebox_arc2", "learned")]
+
+
+def _row(scene, kernel, psnr):
+    return {"scene": scene, "kernel": kernel, "set": "validation", "test_psnr": psnr, "train_psnr": psnr + 5,
+            "primitives": 10, "k": None, "rollbacks": 0}
+
+
+def test_learned_validation_grid_in_parts_keeps_every_part(tmp_path, monkeypatch):
+    """A grid run one scene at a time keeps each scene's rows in the seed's result file."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    monkeypatch.setattr(script, "run_one", lambda scene, kernel, *a, **k: _row(scene, kernel, 20.0))
+    for scene in ("kangaroo", "juicebox"):
+        monkeypatch.setattr("sys.argv", ["learned_validation.py", str(tmp_path), "--protocol", "30k", "--seed", "1",
+                                         "--scenes", scene, "--kernels", "gaussian,learned"])
+        script.main()
+    rows = json.loads((tmp_path / "learned_validation_30k_seed1.json").read_text())["rows"]
+    assert sorted((r["scene"], r["kernel"]) for r in rows) == [
+        ("juicebox", "gaussian"), ("juicebox", "learned"), ("kangaroo", "gaussian"), ("kangaroo", "learned")]
+
+
+def test_learned_validation_over_seeds_reads_saved_rows(tmp_path):
+    """Without run folders, --over-seeds pairs the rows the grids saved, seed by seed."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    for seed, (gaussian, learned) in enumerate([(24.0, 25.0), (23.0, 23.5)]):
+        rows = [_row("kangaroo", "gaussian", gaussian), _row("kangaroo", "learned", learned)]
+        script.result_file(tmp_path, "30k", seed).write_text(json.dumps({"rows": rows}))
+    doc = script.over_seeds(tmp_path, "30k", ["kangaroo", "cup"], ["gaussian", "learned"])
+    assert doc["seeds_found"] == [0, 1]
+    (row,) = doc["per_scene"]
+    assert row["seeds"] == [0, 1] and row["set"] == "validation"
+    assert math.isclose(row["gap_mean"], 0.75) and math.isclose(row["gap_standard_error"], 0.25)
