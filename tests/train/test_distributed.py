@@ -57,13 +57,15 @@ def prims(run: Path) -> dict:
 
 def assert_same_training(a: dict, b: dict) -> None:
     """Float tolerance: Adam (eps 1e-15) turns rounding-level gradient differences of near-still
-    primitives into steps of up to one learning rate, so a few entries differ by ~1e-3; the mean
-    difference shows that the runs are the same run."""
+    primitives into steps of up to one learning rate, so a few entries differ by ~1e-3 (on an AVX2
+    machine 4 % of the planar run's log-scales, which moved its mean difference to 1.2e-4); the
+    median difference (1e-6 and below there) shows that the runs are the same run: a gradient that
+    differs between them moves most entries, not a few."""
     assert a["means"].shape == b["means"].shape
     for name in b:
         diff = (a[name] - b[name]).abs()
         assert torch.allclose(a[name], b[name], rtol=1e-3, atol=5e-3), (name, float(diff.max()))
-        assert float(diff.mean()) < 1e-4, (name, float(diff.mean()))
+        assert float(diff.median()) < 1e-5, (name, float(diff.median()))
 
 
 #: planar surfels with 2DGS's geometry terms, on after iteration 23 and 10 of 100 (7000 and 3000 of 30k)
