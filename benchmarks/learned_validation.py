@@ -138,10 +138,14 @@ def print_table(rows: list[dict], scenes: list[str], kernels: list[str], key: st
               + " ".join(f"{got[k][key]:>13.2f}" if k in got else f"{'-':>13}" for k in kernels) + gaps)
 
 
+def file_stem(protocol: str) -> str:
+    """learned_validation[_30k]: the start of every file name the protocol's grid writes."""
+    return "learned_validation" + ("" if protocol == "7k" else f"_{protocol}")
+
+
 def result_file(out: Path, protocol: str, seed: int) -> Path:
     """OUT/learned_validation[_30k][_seedN].json: the rows of one protocol and seed."""
-    suffix = "" if protocol == "7k" else f"_{protocol}"
-    return out / (f"learned_validation{suffix}" + ("" if seed == 0 else f"_seed{seed}") + ".json")
+    return out / (file_stem(protocol) + ("" if seed == 0 else f"_seed{seed}") + ".json")
 
 
 def saved_rows(out: Path, protocol: str, seed: int) -> dict[tuple[str, str], dict]:
@@ -166,9 +170,8 @@ def seeds_run(out: Path, protocol: str) -> list[int]:
         match = re.fullmatch(re.escape(protocol) + r"(?:_seed(\d+))?", folder.name)
         if match:
             found.add(int(match.group(1) or 0))
-    suffix = "" if protocol == "7k" else f"_{protocol}"
-    for path in out.glob(f"learned_validation{suffix}*.json"):
-        match = re.fullmatch(f"learned_validation{suffix}" + r"(?:_seed(\d+))?\.json", path.name)
+    for path in out.glob(f"{file_stem(protocol)}*.json"):
+        match = re.fullmatch(re.escape(file_stem(protocol)) + r"(?:_seed(\d+))?\.json", path.name)
         if match:
             found.add(int(match.group(1) or 0))
     return sorted(found)
@@ -242,11 +245,10 @@ def main() -> None:
     unknown = sorted(set(kernels) - set(KERNELS))
     if unknown:
         ap.error(f"unknown kernel(s) {', '.join(unknown)}; choose from {', '.join(KERNELS)}")
-    suffix = "" if args.protocol == "7k" else f"_{args.protocol}"
     if args.over_seeds:
         doc = over_seeds(args.out, args.protocol, scenes, kernels)
         print_over_seeds(doc)
-        (args.out / f"learned_validation{suffix}_over_seeds.json").write_text(json.dumps(doc, indent=1))
+        (args.out / f"{file_stem(args.protocol)}_over_seeds.json").write_text(json.dumps(doc, indent=1))
         return
     cells = [(s, k) for s in scenes for k in kernels]
     if not args.table_only:
