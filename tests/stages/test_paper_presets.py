@@ -12,6 +12,7 @@ import yaml
 from click.testing import CliRunner
 
 from splatk.bench import fit_config_for, load_bench_file
+from splatk.stages import pretrain as pretrain_stage
 from splatk.data.synthetic import make_demo_scene
 from splatk_cli.common import find_preset
 from splatk_cli.main import cli
@@ -56,8 +57,17 @@ def shrunk_preset(name: str, tmp: Path, extra: dict | None = None) -> Path:
     return path
 
 
+@pytest.fixture
+def tiny_pretraining(monkeypatch):
+    """The bench's pretraining with a tiny first stage too (pretrain_steps shortens the second
+    only): the grid's bookkeeping is under test here, not how well the networks fit."""
+    real = pretrain_stage.run_pretrain
+    tiny = pretrain_stage.PretrainConfig(dec_candidates=2, dec_steps=3, eval_primitives=64)
+    monkeypatch.setattr(pretrain_stage, "run_pretrain", lambda *a, **kw: real(*a, config=tiny, **kw))
+
+
 @pytest.mark.parametrize("name", PRESETS)
-def test_two_iteration_grid_runs_and_says_it_is_shortened(name, scene, tmp_path):
+def test_two_iteration_grid_runs_and_says_it_is_shortened(name, scene, tmp_path, tiny_pretraining):
     preset = shrunk_preset(name, tmp_path, {"budget": 60} if name != "paper_tab2" else None)
     out = tmp_path / "bench"
     res = CliRunner().invoke(cli, ["bench", str(scene), "--out", str(out), "--preset", str(preset), "--iters", "2",
