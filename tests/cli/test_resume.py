@@ -3,10 +3,11 @@ with Ctrl-C and resumed once more ends where an uninterrupted fit with the same 
 (iterations, train log, parameters, test PSNR); checkpoints are written atomically (temp file +
 os.replace) and a corrupt one gives a clean error.
 
-The runs are real `splatk` processes on the 32 px demo scene, native cpu backend, one thread each
-(the reference run and the run to be killed go side by side). 800 iterations is the shortest
-run with an MCMC refine step (iteration 600: refine_start 500, refine_stop 25/30) after the
-resume, so the density-control generator's restored state is exercised.
+The runs are real `splatk` processes on the 32 px demo scene, backend auto (the native one where
+it builds), one thread each (the reference run and the run to be killed go side by side). 800
+iterations is the shortest run with an MCMC refine step (iteration 600: refine_start 500,
+refine_stop 25/30) after the resume, so the density-control generator's restored state is
+exercised.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from splatk_cli.main import cli
 
 ITERS = 800
 FIT = ["--iters", str(ITERS), "--checkpoint-every", "200", "--budget", "300", "--init", "random",
-       "--seed", "1", "--threads", "1", "--backend", "cpu", "--sh-degree", "1", "-q"]
+       "--seed", "1", "--threads", "1", "--backend", "auto", "--sh-degree", "1", "-q"]
 
 
 def splatk(*args: str) -> list[str]:

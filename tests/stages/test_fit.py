@@ -47,7 +47,7 @@ def test_short_fit_raises_test_psnr(kernel):
 def collapse_trainer(scene, iters: int) -> Trainer:
     torch.manual_seed(0)
     m = SplatModel.from_points(scene.points, scene.point_colors, color_options={"sh_degree": 1})
-    return Trainer(scene, m, TrainConfig(iters=iters, budget=150, backend="cpu", snapshot_every=50,
+    return Trainer(scene, m, TrainConfig(iters=iters, budget=150, backend="auto", snapshot_every=50,
                                          mcmc=MCMCConfig(refine_start=100, refine_every=50)))
 
 

@@ -12,8 +12,8 @@ import yaml
 from click.testing import CliRunner
 
 from splatk.bench import fit_config_for, load_bench_file
-from splatk.stages import pretrain as pretrain_stage
 from splatk.data.synthetic import make_demo_scene
+from splatk.stages import pretrain as pretrain_stage
 from splatk_cli.common import find_preset
 from splatk_cli.main import cli
 
