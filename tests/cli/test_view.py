@@ -96,7 +96,10 @@ def test_serves_the_viewer_and_stops_on_ctrl_c_or_sigterm(run, stop):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "splatk_cli.main", "view", str(run), "--port", str(port),
                              "--host", "127.0.0.1", "--backend", "torch"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            # a pytest-xdist worker ignores SIGINT and a child inherits that, so
+                            # Python would not raise KeyboardInterrupt on Ctrl-C: give it the default
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline, page = time.time() + 120, None
         while time.time() < deadline and proc.poll() is None:
