@@ -3,12 +3,8 @@ by viser over HTTP; without viser, one line naming the install command."""
 from __future__ import annotations
 
 import math
-import os
 import signal
-import socket
-import subprocess
 import sys
-import time
 import urllib.request
 from types import SimpleNamespace
 
@@ -26,6 +22,7 @@ from splatk.stages.view import FramePlanner, RunView, camera_labels, frame_size
 from splatk.train.trainer import TrainConfig
 from splatk_cli.main import cli
 from tests.scenes import orbit_cameras
+from tests.viewer_process import start_viewer, stop_viewer
 
 
 @pytest.fixture(scope="module")
@@ -83,42 +80,18 @@ def test_the_image_is_capped_at_max_size(run):
     assert client.images[0].shape == (32, 64, 3)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_serves_the_viewer_and_stops_on_ctrl_c_or_sigterm(run, stop):
     pytest.importorskip("viser")
-    port = _free_port()
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "splatk_cli.main", "view", str(run), "--port", str(port),
-                             "--host", "127.0.0.1", "--backend", "torch"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            # a pytest-xdist worker ignores SIGINT and a child inherits that, so
-                            # Python would not raise KeyboardInterrupt on Ctrl-C: give it the default
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    viewer = start_viewer(run, "--backend", "torch")
     try:
-        deadline, page = time.time() + 120, None
-        while time.time() < deadline and proc.poll() is None:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
-                    page = r.read().decode(errors="replace")
-                break
-            except OSError:
-                time.sleep(0.5)
-        assert page is not None and "<html" in page.lower(), proc.stderr.read() if proc.poll() is not None else ""
-        proc.send_signal(stop)
-        out, err = proc.communicate(timeout=30)
-        assert proc.returncode == 0, err
-        assert f"http://127.0.0.1:{port}" in err
-        assert "Traceback" not in err and "Aborted" not in err, err
+        with urllib.request.urlopen(viewer.url, timeout=10) as r:
+            page = r.read().decode(errors="replace")
+        assert "<html" in page.lower()
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        code, err = stop_viewer(viewer, stop)
+    assert code == 0, err
+    assert "Traceback" not in err and "Aborted" not in err, err
 
 
 def test_without_viser_one_line_names_the_install(run, monkeypatch):

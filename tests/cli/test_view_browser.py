@@ -9,12 +9,7 @@ import io
 import os
 import re
 import shutil
-import signal
-import socket
-import subprocess
-import sys
 import time
-import urllib.request
 
 import numpy as np
 import pytest
@@ -26,6 +21,7 @@ from splatk.data.synthetic import make_demo_scene
 from splatk.models.io import load_model
 from splatk.stages.fit import FitConfig, run_fit
 from splatk.train.trainer import TrainConfig
+from tests.viewer_process import start_viewer, stop_viewer
 
 pytest.importorskip("viser")
 sync_api = pytest.importorskip("playwright.sync_api", reason="needs playwright: pip install -e \".[dev]\"")
@@ -54,40 +50,19 @@ def learned_run(tmp_path_factory):
     return run_fit(scene, tmp / "run", cfg).path
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def viewer(learned_run, request):
     """`splatk view` serving the run at its test camera test/r_8.png (more options: the test's
-    indirect parameter); the server is always stopped."""
-    port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "splatk_cli.main", "view", str(learned_run), "--port", str(port),
-                             "--host", "127.0.0.1", "--backend", "torch", "--camera", "test/r_8.png",
-                             *getattr(request, "param", ())],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    indirect parameter); the server is always stopped, and a test fails if it died on the way."""
+    viewer = start_viewer(learned_run, "--backend", "torch", "--camera", "test/r_8.png",
+                          *getattr(request, "param", ()))
     try:
-        deadline = time.time() + 120
-        while True:
-            assert proc.poll() is None, proc.stderr.read()
-            assert time.time() < deadline, "splatk view did not serve within 120 s"
-            try:
-                urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2).close()
-                break
-            except OSError:
-                time.sleep(0.5)
-        yield f"http://127.0.0.1:{port}/"
+        yield viewer.url
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.communicate(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
+        died = viewer.proc.poll()
+        code, err = stop_viewer(viewer)
+    assert died is None, f"splatk view exited with {died} during the test: {err}"
+    assert code == 0, f"splatk view did not stop cleanly on Ctrl-C ({code}): {err}"
 
 
 @pytest.fixture
@@ -134,7 +109,11 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def _wait_for_full_frame(page):
     """Until the panel reports a frame of the window's size (the frame drawn once the camera rests)."""
-    page.get_by_text(re.compile(rf"Frame: \d+ ms, {WINDOW}×{WINDOW}")).wait_for(state="visible")
+    try:
+        page.get_by_text(re.compile(rf"Frame: \d+ ms, {WINDOW}×{WINDOW}")).wait_for(state="visible")
+    except sync_api.TimeoutError:
+        label = page.get_by_text(re.compile(r"Frame: ")).all_inner_texts()
+        raise AssertionError(f"no {WINDOW}×{WINDOW} frame within the timeout; the panel shows {label}") from None
 
 
 def _shows(page, ref: np.ndarray, timeout: float = 30.0) -> tuple[float, np.ndarray]:
