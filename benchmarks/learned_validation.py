@@ -18,8 +18,9 @@ Forward-facing scenes (``*_frontal``, ``juicebox_arc2``: ``MADE_SCENES``) are ma
 by ``benchmarks/make_frontal_scene.py`` from a shared 360-degree capture; the others are read from
 ``../shared/data``. Each (scene, kernel) is one ``splatk fit SCENE --out
 OUT/runs/PROTOCOL/SCENE_KERNEL --kernel KERNEL ... --threads 1`` and one ``splatk eval --metrics
-psnr --json``; a run folder that already has its ``eval.json`` is not run again, so the grid
-resumes. Each run's train views are measured too (``splatk eval --split train``, which writes the
+psnr --json``; a run folder that already has its ``eval.json`` is not run again, and one whose fit
+stopped part-way (it has a checkpoint but no ``eval.json``) goes on with ``splatk fit --resume``, so
+the grid resumes. Each run's train views are measured too (``splatk eval --split train``, which writes the
 run's ``metrics_train.json``): a kernel that loses on both splits lacks capacity at that budget, one that
 loses on the test views only generalises worse. Prints the tables and writes
 OUT/learned_validation[_30k][_seedN].json (runs of a seed other than 0 under
@@ -99,9 +100,14 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
         if table_only:
             return None
         env = dict(os.environ, OMP_NUM_THREADS="1")
-        subprocess.run(["splatk", "fit", str(scene_path(scene, out, data)), "--out", str(run), "--overwrite",
-                        *KERNELS[kernel], *PROTOCOLS[protocol], "--seed", str(seed), "--threads", "1",
-                        "--device", device, "-q"], check=True, env=env)
+        if (run / "checkpoints" / "last.pt").exists():
+            # a cell stopped part-way (SIGTERM, the end of a working day) goes on from its checkpoint
+            fit = ["--resume"]
+        else:
+            fit = [str(scene_path(scene, out, data)), "--overwrite", *KERNELS[kernel], *PROTOCOLS[protocol],
+                   "--seed", str(seed)]
+        subprocess.run(["splatk", "fit", *fit, "--out", str(run), "--threads", "1", "--device", device, "-q"],
+                       check=True, env=env)
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json", "--device", device],
                                    check=True, env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)

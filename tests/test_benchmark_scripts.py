@@ -116,3 +116,34 @@ def test_learned_validation_over_seeds_reads_saved_rows(tmp_path):
     (row,) = doc["per_scene"]
     assert row["seeds"] == [0, 1] and row["set"] == "validation"
     assert math.isclose(row["gap_mean"], 0.75) and math.isclose(row["gap_standard_error"], 0.25)
+
+
+@pytest.mark.parametrize("stopped", [True, False], ids=["stopped-part-way", "new"])
+def test_learned_validation_resumes_a_cell_that_stopped(tmp_path, monkeypatch, stopped):
+    """A cell with a checkpoint and no eval.json goes on with `fit --resume`; `--overwrite`
+    (which would throw its iterations away) is for a cell not started."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    run = tmp_path / "runs" / "30k_seed1" / "kangaroo_learned"
+    if stopped:
+        (run / "checkpoints").mkdir(parents=True)
+        (run / "checkpoints" / "last.pt").write_bytes(b"")
+    calls = []
+
+    def fake_run(cmd, **kwargs):
+        calls.append([str(c) for c in cmd])
+        run.mkdir(parents=True, exist_ok=True)
+        if cmd[1] == "fit":  # what a finished fit leaves
+            (run / "fit.json").write_text(json.dumps({"num_primitives": 10}))
+            (run / "train_log.jsonl").write_text(json.dumps({"it": 1, "event": None}) + "\n")
+            (run / "config.yaml").write_text("settings: {kernel_options: {k: 2}, device: cpu}\n")
+        elif "--split" in cmd:
+            (run / "metrics_train.json").write_text(json.dumps({"mean": {"psnr": 30.0}}))
+        return type("Done", (), {"stdout": json.dumps({"mean": {"psnr": 25.0}})})()
+
+    monkeypatch.setattr(script.subprocess, "run", fake_run)
+    row = script.run_one("kangaroo", "learned", "30k", 1, tmp_path, data=tmp_path)
+    fit = next(c for c in calls if c[1] == "fit")
+    assert ("--resume" in fit) is stopped
+    assert ("--overwrite" in fit) is not stopped
+    assert fit[fit.index("--out") + 1] == str(run)
+    assert row["test_psnr"] == 25.0 and row["train_psnr"] == 30.0
