@@ -12,7 +12,9 @@ every other setting default, under one of two protocols:
     python benchmarks/learned_validation.py OUT --protocol 30k --over-seeds [--scenes ...] [--kernels ...]
 
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
-0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k.
+0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k, ``learned-turn`` with every default and decision
+0108's turn penalty in training (``benchmarks/learned_turn_penalty.py``, a candidate for the 30k
+protocol).
 
 Forward-facing scenes (``*_frontal``, ``juicebox_arc2``: ``MADE_SCENES``) are made under OUT/scenes
 by ``benchmarks/make_frontal_scene.py`` from a shared 360-degree capture; the others are read from
@@ -74,7 +76,10 @@ KERNELS = {
     "learned-k2": ["--kernel", "learned", "--k", "2"],
     "learned-k4": ["--kernel", "learned", "--k", "4"],
     "learned-k8": ["--kernel", "learned", "--k", "8"],
+    "learned-turn": ["--kernel", "learned"],  # with decision 0108's turn penalty (learned_turn_penalty.py)
 }
+#: kernels fitted by another command than `splatk fit` (it takes the same arguments)
+FIT_COMMANDS = {"learned-turn": [sys.executable, str(HERE / "learned_turn_penalty.py")]}
 
 
 def set_of(scene: str) -> str:
@@ -106,7 +111,7 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
         else:
             fit = [str(scene_path(scene, out, data)), "--overwrite", *KERNELS[kernel], *PROTOCOLS[protocol],
                    "--seed", str(seed)]
-        subprocess.run(["splatk", "fit", *fit, "--out", str(run), "--threads", "1", "--device", device, "-q"],
+        subprocess.run([*FIT_COMMANDS.get(kernel, ["splatk", "fit"]), *fit, "--out", str(run), "--threads", "1", "--device", device, "-q"],
                        check=True, env=env)
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json", "--device", device],
                                    check=True, env=env, capture_output=True, text=True)

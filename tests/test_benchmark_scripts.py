@@ -147,3 +147,30 @@ def test_learned_validation_resumes_a_cell_that_stopped(tmp_path, monkeypatch, s
     assert ("--overwrite" in fit) is not stopped
     assert fit[fit.index("--out") + 1] == str(run)
     assert row["test_psnr"] == 25.0 and row["train_psnr"] == 30.0
+
+
+def test_turn_penalty_joins_the_loss_of_training_renders_only():
+    """With the penalty installed, the trainer's regularisers after a render with gradients carry
+    the turn change (positive for a turn, zero for none), whose gradient reaches the latents and not
+    the centres; a render without gradients adds nothing, and leaving the block restores training."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_turn_penalty"))
+    import splatk.train.trainer as trainer_module
+
+    plain_regularisers = trainer_module.regularisers
+    model = random_model(40, seed=3, kernel="learned")
+    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
+                                                   generator=torch.Generator().manual_seed(0))
+    cam, backend, bg = orbit_cameras(4, size=32)[0], backends.get("torch"), torch.zeros(3)
+    for degrees, turned in ((10.0, True), (0.0, False)):
+        with script.TurnPenalty(1.0, degrees).installed():
+            with torch.no_grad():
+                model.render(cam, bg, backend=backend)
+            assert float(trainer_module.regularisers(model, 0.0, 0.0)) == 0.0
+            model.render(cam, bg, backend=backend)
+            penalty = trainer_module.regularisers(model, 0.0, 0.0)
+            assert (float(penalty.detach()) > 1e-8) is turned, float(penalty.detach())
+            if turned:
+                penalty.backward()
+                assert model.prims["z3d"].grad.abs().sum() > 0
+                assert model.prims["means"].grad is None or not model.prims["means"].grad.any()
+    assert trainer_module.regularisers is plain_regularisers
