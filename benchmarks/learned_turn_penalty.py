@@ -91,7 +91,8 @@ def out_folder(fit_args: list[str]) -> Path | None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    # no abbreviations: every other option is splatk fit's
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     ap.add_argument("--weight", type=float, default=1.0)
     ap.add_argument("--degrees", type=float, default=10.0)
     args, fit_args = ap.parse_known_args()
