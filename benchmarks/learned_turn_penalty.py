@@ -107,7 +107,7 @@ def main() -> None:
         except SystemExit as stop:  # how click ends every command, a finished one too
             code = stop.code
     out = out_folder(fit_args)
-    if code in (0, None) and out is not None and out.exists():
+    if out is not None and (out / "config.yaml").exists():  # a run began: finished or stopped part-way
         (out / "turn_penalty.json").write_text(json.dumps({"weight": args.weight, "degrees": args.degrees}))
     sys.exit(code)
 
