@@ -10,44 +10,45 @@ import subprocess
 import sys
 import time
 import urllib.request
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 
 @dataclass
 class Viewer:
     proc: subprocess.Popen
     url: str
-    stderr: list[str] = field(default_factory=list)  # what it printed before serving
+    printed: str = ""  # what it wrote on stderr before serving
 
 
 def start_viewer(run, *options: str, timeout: float = 120.0) -> Viewer:
     """Start `splatk view RUN --port 0 OPTIONS` and return once its page answers."""
     proc = subprocess.Popen([sys.executable, "-m", "splatk_cli.main", "view", str(run), "--port", "0",
-                             "--host", "127.0.0.1", *options],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            "--host", "127.0.0.1", *options],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             env={**os.environ, "OMP_NUM_THREADS": "1"},
                             # a pytest-xdist worker ignores SIGINT and a child inherits that, so
                             # Python would not raise KeyboardInterrupt on Ctrl-C: give it the default
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    lines: list[str] = []
+    printed = b""
     deadline = time.time() + timeout
     try:
         url = None
         while url is None:  # `splatk view` prints the address it serves once the port is bound
             if time.time() > deadline:
-                raise AssertionError(f"splatk view printed no address within {timeout:.0f} s: {''.join(lines)}")
+                raise AssertionError(f"splatk view printed no address within {timeout:.0f} s: {printed.decode(errors="replace")}")
             if not select.select([proc.stderr], [], [], 0.5)[0]:
                 continue
-            line = proc.stderr.readline()
-            if not line:
-                raise AssertionError(f"splatk view exited with {proc.wait()}: {''.join(lines)}")
-            lines.append(line)
-            match = re.search(r"http://127\.0\.0\.1:\d+", line)
-            url = match and match.group(0) + "/"
+            # raw reads, not readline: a buffered reader could hold the address line back
+            chunk = os.read(proc.stderr.fileno(), 65536)
+            if not chunk:
+                raise AssertionError(f"splatk view exited with {proc.wait()}: {printed.decode(errors="replace")}")
+            printed += chunk
+            match = re.search(rb"http://127\.0\.0\.1:\d+", printed)
+            url = match and match.group(0).decode() + "/"
         while True:
             try:
                 urllib.request.urlopen(url, timeout=2).close()
-                return Viewer(proc, url, lines)
+                return Viewer(proc, url, printed.decode(errors="replace"))
             except OSError:
                 if time.time() > deadline:
                     raise AssertionError(f"splatk view did not answer at {url} within {timeout:.0f} s") from None
@@ -71,4 +72,4 @@ def stop_viewer(viewer: Viewer, signum: int = signal.SIGINT, timeout: float = 30
         proc.kill()
         _, err = proc.communicate()
         code = None
-    return code, "".join(viewer.stderr) + err
+    return code, viewer.printed + err.decode(errors="replace")
