@@ -35,20 +35,20 @@ def start_viewer(run, *options: str, timeout: float = 120.0) -> Viewer:
         url = None
         while url is None:  # `splatk view` prints the address it serves once the port is bound
             if time.time() > deadline:
-                raise AssertionError(f"splatk view printed no address within {timeout:.0f} s: {printed.decode(errors="replace")}")
+                raise AssertionError(f"splatk view printed no address within {timeout:.0f} s: {_text(printed)}")
             if not select.select([proc.stderr], [], [], 0.5)[0]:
                 continue
             # raw reads, not readline: a buffered reader could hold the address line back
             chunk = os.read(proc.stderr.fileno(), 65536)
             if not chunk:
-                raise AssertionError(f"splatk view exited with {proc.wait()}: {printed.decode(errors="replace")}")
+                raise AssertionError(f"splatk view exited with {proc.wait()}: {_text(printed)}")
             printed += chunk
             match = re.search(rb"http://127\.0\.0\.1:\d+", printed)
             url = match and match.group(0).decode() + "/"
         while True:
             try:
                 urllib.request.urlopen(url, timeout=2).close()
-                return Viewer(proc, url, printed.decode(errors="replace"))
+                return Viewer(proc, url, _text(printed))
             except OSError:
                 if time.time() > deadline:
                     raise AssertionError(f"splatk view did not answer at {url} within {timeout:.0f} s") from None
@@ -72,4 +72,8 @@ def stop_viewer(viewer: Viewer, signum: int = signal.SIGINT, timeout: float = 30
         proc.kill()
         _, err = proc.communicate()
         code = None
-    return code, viewer.printed + err.decode(errors="replace")
+    return code, viewer.printed + _text(err)
+
+
+def _text(printed: bytes) -> str:
+    return printed.decode(errors="replace")

@@ -125,7 +125,8 @@ def _wait_for_full_frame(page, timeout: float = 60.0) -> tuple[int, int]:
         canvas = _canvas_size(page)
         if frame == canvas:
             return frame
-        assert time.time() < deadline, f"no frame of the canvas's size {canvas} within {timeout:.0f} s: the panel shows {labels}"
+        assert time.time() < deadline, \
+            f"no frame of the canvas's size {canvas} within {timeout:.0f} s: the panel shows {labels}"
         time.sleep(0.2)
 
 
