@@ -9,8 +9,8 @@ visible primitive's profile table also computed with the primitive turned by ``-
 a random axis (its camera-space rotation turned, its centre kept); ``--weight`` x the mean squared
 difference of the two tables joins the step's loss. The penalty reaches the latents and the
 networks, not the geometry (its inputs are detached: it is to shape the kernel's response to a
-turn, not to move, turn or shrink primitives). Rendering, evaluation and the saved model are splatk's own: only
-training changes, and the settings go to the run's ``turn_penalty.json``.
+turn, not to move, turn or shrink primitives). Rendering, evaluation and the saved model are
+splatk's own: only training changes, and the settings go to the run's ``turn_penalty.json``.
 
 ``benchmarks/learned_validation.py --kernels learned-turn`` runs it as a cell beside the Gaussian
 and the default learned kernel.

@@ -111,8 +111,8 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
         else:
             fit = [str(scene_path(scene, out, data)), "--overwrite", *KERNELS[kernel], *PROTOCOLS[protocol],
                    "--seed", str(seed)]
-        subprocess.run([*FIT_COMMANDS.get(kernel, ["splatk", "fit"]), *fit, "--out", str(run), "--threads", "1", "--device", device, "-q"],
-                       check=True, env=env)
+        subprocess.run([*FIT_COMMANDS.get(kernel, ["splatk", "fit"]), *fit, "--out", str(run), "--threads", "1",
+                        "--device", device, "-q"], check=True, env=env)
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json", "--device", device],
                                    check=True, env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)

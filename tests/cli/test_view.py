@@ -91,6 +91,7 @@ def test_serves_the_viewer_and_stops_on_ctrl_c_or_sigterm(run, stop):
     finally:
         code, err = stop_viewer(viewer, stop)
     assert code == 0, err
+    assert viewer.url.rstrip("/") in err  # the address it serves, as it printed it
     assert "Traceback" not in err and "Aborted" not in err, err
 
 

@@ -107,6 +107,13 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 10 * np.log10(255.0 ** 2 / float(((a - b) ** 2)[keep].mean()))
 
 
+def _frame_size(page) -> tuple[int, int]:
+    """The size of the last frame, as the panel reports it."""
+    text = page.get_by_text(re.compile(r"Frame: \d+ ms, \d+×\d+")).inner_text()
+    width, height = re.search(r"(\d+)×(\d+)", text).groups()
+    return int(width), int(height)
+
+
 def _canvas_size(page) -> tuple[int, int]:
     """The drawing buffer of viser's WebGL canvas: the client reports it as the camera's image
     size. It is the window's size, or less when the browser draws slowly (react-three-fiber then
@@ -120,13 +127,10 @@ def _wait_for_full_frame(page, timeout: float = 60.0) -> tuple[int, int]:
     rests); returns that size."""
     deadline = time.time() + timeout
     while True:
-        labels = page.get_by_text(re.compile(r"Frame: \d+ ms, \d+×\d+")).all_inner_texts()
-        frame = tuple(int(n) for n in re.search(r"(\d+)×(\d+)", labels[0]).groups()) if labels else None
-        canvas = _canvas_size(page)
+        frame, canvas = _frame_size(page), _canvas_size(page)
         if frame == canvas:
             return frame
-        assert time.time() < deadline, \
-            f"no frame of the canvas's size {canvas} within {timeout:.0f} s: the panel shows {labels}"
+        assert time.time() < deadline, f"no frame of the canvas's size {canvas} within {timeout:.0f} s: last {frame}"
         time.sleep(0.2)
 
 
@@ -162,13 +166,6 @@ def test_the_camera_list_jumps_to_the_picked_camera(learned_run, page):
     ref = _eval_render(learned_run, "test/r_0.png")
     psnr, _ = _shows(page, ref, timeout=60)
     assert psnr > 25, f"after picking test/r_0.png the viewer does not show it (PSNR {psnr:.1f} dB)"
-
-
-def _frame_size(page) -> tuple[int, int]:
-    """The size of the last frame, as the panel reports it."""
-    text = page.get_by_text(re.compile(r"Frame: \d+ ms, \d+×\d+")).inner_text()
-    width, height = re.search(r"(\d+)×(\d+)", text).groups()
-    return int(width), int(height)
 
 
 # no frame is drawn in a millisecond, so every frame while the camera moves is smaller than the last
