@@ -1,14 +1,19 @@
 """3DGS's adaptive density control against Gaussian-MCMC at ADC's final primitive count: the check
 that `--strategy adc` trains as 3DGS does.
 
-    python benchmarks/adc_check.py OUT [--scene lego] [--downscale 4] [--iters 30000] [--arms adc,mcmc]
+    python benchmarks/adc_check.py OUT [--scene lego] [--downscale 4] [--iters 30000]
+        [--arms adc,adc-reg,mcmc]
 
 Arm ``adc`` is ``splatk fit SCENE --out OUT/runs/adc --strategy adc --iters N --downscale D
---threads 1``; arm ``mcmc`` is the same with the default strategy and ``--budget`` set to the
-ADC run's final primitive count (so it needs the ADC run). Each is followed by ``splatk eval
---metrics psnr,ssim --json``; a run folder that already has its ``eval.json`` is not run again.
-Prints the table, the ADC run's primitive count at each logged iteration, its opacity resets and
-rollbacks, and writes OUT/adc_check.json (the committed one: benchmarks/results/adc_check_lego.json).
+--threads 1``. Arm ``adc-reg`` is the same with MCMC's opacity and scale regularisers
+(``--opacity-reg 0.01 --scale-reg 0.01``, which 3DGS does not have): where ADC falls behind MCMC,
+it tells the density control from the regularisers. Arm ``mcmc`` is the fit with the default
+strategy and ``--budget`` set to the ADC run's final primitive count (so it needs the ADC run).
+Each is followed by ``splatk eval --metrics psnr,ssim --json`` on the test views and ``--metrics
+psnr`` on the train views. A run folder that already has its ``eval.json`` is not run again; one
+stopped part-way (a checkpoint, no ``eval.json``) goes on with ``splatk fit --resume``. Prints the
+table, the ADC run's primitive count at each logged iteration, its opacity resets and rollbacks,
+and writes OUT/adc_check.json (the committed one: benchmarks/results/adc_check_lego.json).
 """
 from __future__ import annotations
 
@@ -24,16 +29,30 @@ import torch
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
+#: each arm's flags beside --strategy / --budget (MCMC's regularisers are splatk's defaults)
+ARM_FLAGS = {"adc": ["--strategy", "adc"],
+             "adc-reg": ["--strategy", "adc", "--opacity-reg", "0.01", "--scale-reg", "0.01"]}
+
+
 def fit_and_eval(scene: Path, run: Path, flags: list[str], args) -> dict:
+    """Test-view PSNR and SSIM, and the train views' PSNR, of the run in ``run``."""
     result = run / "eval.json"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
     if not result.exists():
-        env = dict(os.environ, OMP_NUM_THREADS="1")
-        subprocess.run(["splatk", "fit", str(scene), "--out", str(run), "--overwrite", "--iters", str(args.iters),
-                        "--downscale", str(args.downscale), "--threads", "1", "-q", *flags], check=True, env=env)
+        if (run / "checkpoints" / "last.pt").exists():
+            fit = ["--resume"]  # an arm stopped part-way goes on from its checkpoint
+        else:
+            fit = [str(scene), "--overwrite", "--iters", str(args.iters), "--downscale", str(args.downscale), *flags]
+        subprocess.run(["splatk", "fit", *fit, "--out", str(run), "--threads", "1", "-q"], check=True, env=env)
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr,ssim", "--json"], check=True,
                                    env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)
-    return json.loads(result.read_text())["mean"]
+    train = run / "metrics_train.json"
+    if not train.exists():
+        subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr"], check=True, env=env,
+                       capture_output=True)
+    mean = json.loads(result.read_text())["mean"]
+    return {**mean, "train_psnr": json.loads(train.read_text())["mean"]["psnr"]}
 
 
 def adc_history(run: Path) -> dict:
@@ -51,33 +70,42 @@ def main() -> None:
     ap.add_argument("--scene", default="lego")
     ap.add_argument("--downscale", type=float, default=4.0)
     ap.add_argument("--iters", type=int, default=30000)
-    ap.add_argument("--arms", default="adc,mcmc")
+    ap.add_argument("--arms", default="adc,mcmc", help="comma-separated: adc, adc-reg, mcmc")
     args = ap.parse_args()
     scene = Path(args.scene) if Path(args.scene).is_dir() else DATA / args.scene
     runs = args.out / "runs"
     arms = args.arms.split(",")
-    rows, history = {}, None
-    if "adc" in arms or "mcmc" in arms:
-        rows["3dgs-adc"] = fit_and_eval(scene, runs / "adc", ["--strategy", "adc"], args)
-        history = adc_history(runs / "adc")
+    unknown = set(arms) - {"adc", "adc-reg", "mcmc"}
+    if unknown:
+        ap.error(f"unknown arm(s) {', '.join(sorted(unknown))}: use adc, adc-reg, mcmc")
+    rows, history = {}, {}
+    # the MCMC arm's budget is the ADC arm's final count, so it needs the ADC run
+    for arm in [a for a in ("adc", "adc-reg") if a in arms or (a == "adc" and "mcmc" in arms)]:
+        rows[f"3dgs-{arm}"] = fit_and_eval(scene, runs / arm, ARM_FLAGS[arm], args)
+        history[arm] = adc_history(runs / arm)
     mcmc = None
     if "mcmc" in arms:
-        rows["3dgs-mcmc"] = fit_and_eval(scene, runs / "mcmc", ["--budget", str(history["final_primitives"])], args)
+        budget = history["adc"]["final_primitives"]
+        rows["3dgs-mcmc"] = fit_and_eval(scene, runs / "mcmc", ["--budget", str(budget)], args)
         # MCMC may end below its budget (it holds growth while many primitives are dead)
         mcmc = adc_history(runs / "mcmc")
     print(f"{args.scene}, {args.iters} iterations, 1/{args.downscale:g} resolution")
-    print(f"{'method':<12} {'PSNR':>7} {'SSIM':>7}")
-    for name, m in rows.items():
-        print(f"{name:<12} {m['psnr']:7.2f} {m['ssim']:7.4f}")
-    if history:
-        counts = history["count"]
-        print("ADC primitives: " + ", ".join(f"{it}: {n:,}" for it, n in counts.items() if it % 3000 == 0))
-        print(f"ADC rollbacks: {len(history['rollbacks'])}")
+    print(f"{'method':<14} {'test PSNR':>9} {'SSIM':>7} {'train PSNR':>10} {'primitives':>10}")
+    finals = {f"3dgs-{arm}": h["final_primitives"] for arm, h in history.items()}
     if mcmc:
-        print(f"MCMC primitives at the end: {mcmc['final_primitives']:,} (budget {history['final_primitives']:,}); "
-              f"rollbacks: {len(mcmc['rollbacks'])}")
+        finals["3dgs-mcmc"] = mcmc["final_primitives"]
+    for name, m in rows.items():
+        print(f"{name:<14} {m['psnr']:9.2f} {m['ssim']:7.4f} {m['train_psnr']:10.2f} {finals[name]:10,}")
+    for arm, h in history.items():
+        step = max(1, args.iters // 10)
+        counts = h["count"]
+        print(f"{arm} primitives: " + ", ".join(f"{it}: {n:,}" for it, n in counts.items() if it % step == 0))
+        print(f"{arm} rollbacks: {len(h['rollbacks'])}")
+    if mcmc:
+        print(f"MCMC rollbacks: {len(mcmc['rollbacks'])}")
     out = {"scene": args.scene, "iters": args.iters, "downscale": args.downscale, "results": rows,
-           "adc": history, "mcmc": mcmc, "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__}}
+           "adc": history.get("adc"), "adc-reg": history.get("adc-reg"), "mcmc": mcmc,
+           "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__}}
     (args.out / "adc_check.json").write_text(json.dumps(out, indent=1))
 
 

@@ -149,6 +149,46 @@ def test_learned_validation_resumes_a_cell_that_stopped(tmp_path, monkeypatch, s
     assert row["test_psnr"] == 25.0 and row["train_psnr"] == 30.0
 
 
+def test_adc_check_gives_mcmc_the_adc_count_and_resumes_a_stopped_arm(tmp_path, monkeypatch):
+    """The MCMC arm's budget is the ADC arm's final count; the regularised ADC arm adds MCMC's
+    opacity and scale regularisers to `--strategy adc`; an arm with a checkpoint and no eval.json
+    goes on with `fit --resume` and is not refitted from scratch."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "adc_check"))
+    stopped = tmp_path / "runs" / "adc-reg"
+    (stopped / "checkpoints").mkdir(parents=True)
+    (stopped / "checkpoints" / "last.pt").write_bytes(b"")
+    counts = {"adc": 1234, "adc-reg": 999, "mcmc": 1000}
+    calls = []
+
+    def fake_run(cmd, **kwargs):
+        cmd = [str(c) for c in cmd]
+        calls.append(cmd)
+        run = Path(cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[2])
+        run.mkdir(parents=True, exist_ok=True)
+        if cmd[1] == "fit":
+            (run / "fit.json").write_text(json.dumps({"num_primitives": counts[run.name], "events": []}))
+            (run / "train_log.jsonl").write_text(json.dumps({"it": 1000, "num": counts[run.name]}) + "\n")
+        elif "--split" in cmd:
+            (run / "metrics_train.json").write_text(json.dumps({"mean": {"psnr": 40.0}}))
+        return type("Done", (), {"stdout": json.dumps({"mean": {"psnr": 30.0, "ssim": 0.9}})})()
+
+    monkeypatch.setattr(script.subprocess, "run", fake_run)
+    monkeypatch.setattr(script.platform, "processor", lambda: "cpu")  # it would run `uname -p`
+    monkeypatch.setattr("sys.argv", ["adc_check.py", str(tmp_path), "--scene", str(tmp_path),
+                                     "--arms", "adc,adc-reg,mcmc", "--iters", "50"])
+    script.main()
+    fits = {Path(c[c.index("--out") + 1]).name: c for c in calls if c[1] == "fit"}
+    assert fits["mcmc"][fits["mcmc"].index("--budget") + 1] == "1234"
+    assert "--resume" in fits["adc-reg"] and "--overwrite" not in fits["adc-reg"]
+    assert "--overwrite" in fits["adc"] and "--opacity-reg" not in fits["adc"]
+    reg = script.ARM_FLAGS["adc-reg"]
+    assert reg[:2] == ["--strategy", "adc"]
+    assert reg[reg.index("--opacity-reg") + 1] == "0.01" and reg[reg.index("--scale-reg") + 1] == "0.01"
+    written = json.loads((tmp_path / "adc_check.json").read_text())
+    assert written["results"]["3dgs-mcmc"]["train_psnr"] == 40.0
+    assert written["adc-reg"]["final_primitives"] == 999
+
+
 def test_turn_penalty_joins_the_loss_of_training_renders_only():
     """With the penalty installed, the trainer's regularisers after a render with gradients carry
     the turn change (positive for a turn, zero for none), whose gradient reaches the latents and not
