@@ -97,7 +97,7 @@ def main() -> None:
     for name, m in rows.items():
         print(f"{name:<14} {m['psnr']:9.2f} {m['ssim']:7.4f} {m['train_psnr']:10.2f} {finals[name]:10,}")
     for arm, h in history.items():
-        step = max(1, args.iters // 10)
+        step = max(1000, round(args.iters / 10, -3))  # the counts are kept at every 1000th iteration
         counts = h["count"]
         print(f"{arm} primitives: " + ", ".join(f"{it}: {n:,}" for it, n in counts.items() if it % step == 0))
         print(f"{arm} rollbacks: {len(h['rollbacks'])}")
