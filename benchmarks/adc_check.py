@@ -13,7 +13,8 @@ Each is followed by ``splatk eval --metrics psnr,ssim --json`` on the test views
 psnr`` on the train views. A run folder that already has its ``eval.json`` is not run again; one
 stopped part-way (a checkpoint, no ``eval.json``) goes on with ``splatk fit --resume``. Prints the
 table, the ADC run's primitive count at each logged iteration, its opacity resets and rollbacks,
-and writes OUT/adc_check.json (the committed one: benchmarks/results/adc_check_lego.json).
+and writes OUT/adc_check.json (the committed ones: benchmarks/results/adc_check_lego.json at 30k
+iterations, adc_check_lego_7k.json at 7k).
 """
 from __future__ import annotations
 
@@ -26,12 +27,16 @@ from pathlib import Path
 
 import torch
 
+from splatk.train.trainer import TrainConfig
+
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
-#: each arm's flags beside --strategy / --budget (MCMC's regularisers are splatk's defaults)
+#: each arm's flags beside --budget; adc-reg names the regularisers MCMC runs with (splatk's
+#: defaults, which --strategy adc turns off)
 ARM_FLAGS = {"adc": ["--strategy", "adc"],
-             "adc-reg": ["--strategy", "adc", "--opacity-reg", "0.01", "--scale-reg", "0.01"]}
+             "adc-reg": ["--strategy", "adc", "--opacity-reg", str(TrainConfig.opacity_reg),
+                         "--scale-reg", str(TrainConfig.scale_reg)]}
 
 
 def fit_and_eval(scene: Path, run: Path, flags: list[str], args) -> dict:
@@ -96,8 +101,8 @@ def main() -> None:
         finals["3dgs-mcmc"] = mcmc["final_primitives"]
     for name, m in rows.items():
         print(f"{name:<14} {m['psnr']:9.2f} {m['ssim']:7.4f} {m['train_psnr']:10.2f} {finals[name]:10,}")
+    step = max(1000, round(args.iters / 10, -3))  # the counts are kept at every 1000th iteration
     for arm, h in history.items():
-        step = max(1000, round(args.iters / 10, -3))  # the counts are kept at every 1000th iteration
         counts = h["count"]
         print(f"{arm} primitives: " + ", ".join(f"{it}: {n:,}" for it, n in counts.items() if it % step == 0))
         print(f"{arm} rollbacks: {len(h['rollbacks'])}")
