@@ -72,7 +72,10 @@ def page(viewer):
         try:
             page = browser.new_page(viewport={"width": WINDOW, "height": WINDOW})
             page.set_default_timeout(60_000)
-            page.goto(viewer)
+            # a fixed pixel ratio: viser's client otherwise lowers it when the browser draws slowly
+            # (SwiftShader on a busy CPU), and it tells the server the new canvas size only when the
+            # camera next moves, so a frame drawn at rest may stay the old size
+            page.goto(viewer + "?fixedDpr=1")
             yield page
         finally:
             browser.close()
@@ -116,8 +119,7 @@ def _frame_size(page) -> tuple[int, int]:
 
 def _canvas_size(page) -> tuple[int, int]:
     """The drawing buffer of viser's WebGL canvas: the client reports it as the camera's image
-    size. It is the window's size, or less when the browser draws slowly (react-three-fiber then
-    lowers the pixel ratio, as SwiftShader on a busy CPU does)."""
+    size (the window's size at the page's fixed pixel ratio of 1)."""
     sizes = page.evaluate("() => [...document.querySelectorAll('canvas')].map(c => [c.width, c.height])")
     return tuple(max(sizes, key=lambda wh: wh[0] * wh[1]))
 
@@ -172,6 +174,7 @@ def test_the_camera_list_jumps_to_the_picked_camera(learned_run, page):
 @pytest.mark.parametrize("viewer", [("--fps", "1000")], indirect=True)
 def test_frames_shrink_while_the_camera_moves_and_sharpen_at_rest(page):
     full = _wait_for_full_frame(page)
+    assert full == (WINDOW, WINDOW)  # the page's pixel ratio is 1
     y = 0.8 * WINDOW  # below the panel
     page.mouse.move(0.2 * WINDOW, y)
     page.mouse.down()
@@ -183,4 +186,4 @@ def test_frames_shrink_while_the_camera_moves_and_sharpen_at_rest(page):
     page.mouse.up()
     assert any(width < full[0] for width, _ in sizes), f"frames while moving: {sorted(sizes)}"
     assert all(width / height == pytest.approx(1.0, abs=0.05) for width, height in sizes)  # the window's aspect
-    _wait_for_full_frame(page)  # once the camera rests
+    assert _wait_for_full_frame(page) == full  # once the camera rests
