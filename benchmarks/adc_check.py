@@ -2,12 +2,13 @@
 that `--strategy adc` trains as 3DGS does.
 
     python benchmarks/adc_check.py OUT [--scene lego] [--downscale 4] [--iters 30000]
-        [--arms adc,adc-reg,mcmc]
+        [--arms adc,adc-reg,adc-opacity-reg,adc-scale-reg,mcmc]
 
 Arm ``adc`` is ``splatk fit SCENE --out OUT/runs/adc --strategy adc --iters N --downscale D
 --threads 1``. Arm ``adc-reg`` is the same with MCMC's opacity and scale regularisers
 (``--opacity-reg 0.01 --scale-reg 0.01``, which 3DGS does not have): where ADC falls behind MCMC,
-it tells the density control from the regularisers. Arm ``mcmc`` is the fit with the default
+it tells the density control from the regularisers. Arms ``adc-opacity-reg`` and ``adc-scale-reg`` add
+one of the two each, to tell which of them closes the gap. Arm ``mcmc`` is the fit with the default
 strategy and ``--budget`` set to the ADC run's final primitive count (so it needs the ADC run).
 Each is followed by ``splatk eval --metrics psnr,ssim --json`` on the test views and ``--metrics
 psnr`` on the train views. A run folder that already has its ``eval.json`` is not run again; one
@@ -36,7 +37,10 @@ DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 #: defaults, which --strategy adc turns off)
 ARM_FLAGS = {"adc": ["--strategy", "adc"],
              "adc-reg": ["--strategy", "adc", "--opacity-reg", str(TrainConfig.opacity_reg),
-                         "--scale-reg", str(TrainConfig.scale_reg)]}
+                         "--scale-reg", str(TrainConfig.scale_reg)],
+             "adc-opacity-reg": ["--strategy", "adc", "--opacity-reg", str(TrainConfig.opacity_reg)],
+             "adc-scale-reg": ["--strategy", "adc", "--scale-reg", str(TrainConfig.scale_reg)]}
+ADC_ARMS = tuple(ARM_FLAGS)
 
 
 def fit_and_eval(scene: Path, run: Path, flags: list[str], args) -> dict:
@@ -75,17 +79,17 @@ def main() -> None:
     ap.add_argument("--scene", default="lego")
     ap.add_argument("--downscale", type=float, default=4.0)
     ap.add_argument("--iters", type=int, default=30000)
-    ap.add_argument("--arms", default="adc,mcmc", help="comma-separated: adc, adc-reg, mcmc")
+    ap.add_argument("--arms", default="adc,mcmc", help=f"comma-separated: {', '.join(ADC_ARMS)}, mcmc")
     args = ap.parse_args()
     scene = Path(args.scene) if Path(args.scene).is_dir() else DATA / args.scene
     runs = args.out / "runs"
     arms = args.arms.split(",")
-    unknown = set(arms) - {"adc", "adc-reg", "mcmc"}
+    unknown = set(arms) - {*ADC_ARMS, "mcmc"}
     if unknown:
-        ap.error(f"unknown arm(s) {', '.join(sorted(unknown))}: use adc, adc-reg, mcmc")
+        ap.error(f"unknown arm(s) {', '.join(sorted(unknown))}: use {', '.join(ADC_ARMS)}, mcmc")
     rows, history = {}, {}
     # the MCMC arm's budget is the ADC arm's final count, so it needs the ADC run
-    for arm in [a for a in ("adc", "adc-reg") if a in arms or (a == "adc" and "mcmc" in arms)]:
+    for arm in [a for a in ADC_ARMS if a in arms or (a == "adc" and "mcmc" in arms)]:
         rows[f"3dgs-{arm}"] = fit_and_eval(scene, runs / arm, ARM_FLAGS[arm], args)
         history[arm] = adc_history(runs / arm)
     mcmc = None
@@ -95,12 +99,12 @@ def main() -> None:
         # MCMC may end below its budget (it holds growth while many primitives are dead)
         mcmc = adc_history(runs / "mcmc")
     print(f"{args.scene}, {args.iters} iterations, 1/{args.downscale:g} resolution")
-    print(f"{'method':<14} {'test PSNR':>9} {'SSIM':>7} {'train PSNR':>10} {'primitives':>10}")
+    print(f"{'method':<20} {'test PSNR':>9} {'SSIM':>7} {'train PSNR':>10} {'primitives':>10}")
     finals = {f"3dgs-{arm}": h["final_primitives"] for arm, h in history.items()}
     if mcmc:
         finals["3dgs-mcmc"] = mcmc["final_primitives"]
     for name, m in rows.items():
-        print(f"{name:<14} {m['psnr']:9.2f} {m['ssim']:7.4f} {m['train_psnr']:10.2f} {finals[name]:10,}")
+        print(f"{name:<20} {m['psnr']:9.2f} {m['ssim']:7.4f} {m['train_psnr']:10.2f} {finals[name]:10,}")
     step = max(1000, round(args.iters / 10, -3))  # the counts are kept at every 1000th iteration
     for arm, h in history.items():
         counts = h["count"]
@@ -109,7 +113,7 @@ def main() -> None:
     if mcmc:
         print(f"MCMC rollbacks: {len(mcmc['rollbacks'])}")
     out = {"scene": args.scene, "iters": args.iters, "downscale": args.downscale, "results": rows,
-           "adc": history.get("adc"), "adc-reg": history.get("adc-reg"), "mcmc": mcmc,
+           **{arm: history.get(arm) for arm in ADC_ARMS}, "mcmc": mcmc,
            "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__}}
     (args.out / "adc_check.json").write_text(json.dumps(out, indent=1))
 

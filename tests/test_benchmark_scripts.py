@@ -151,13 +151,13 @@ def test_learned_validation_resumes_a_cell_that_stopped(tmp_path, monkeypatch, s
 
 def test_adc_check_gives_mcmc_the_adc_count_and_resumes_a_stopped_arm(tmp_path, monkeypatch):
     """The MCMC arm's budget is the ADC arm's final count; the regularised ADC arm adds MCMC's
-    opacity and scale regularisers to `--strategy adc`; an arm with a checkpoint and no eval.json
-    goes on with `fit --resume` and is not refitted from scratch."""
+    opacity and scale regularisers to `--strategy adc`, the single-regulariser arms one each; an arm
+    with a checkpoint and no eval.json goes on with `fit --resume` and is not refitted from scratch."""
     script = load_script(next(s for s in SCRIPTS if s.stem == "adc_check"))
     stopped = tmp_path / "runs" / "adc-reg"
     (stopped / "checkpoints").mkdir(parents=True)
     (stopped / "checkpoints" / "last.pt").write_bytes(b"")
-    counts = {"adc": 1234, "adc-reg": 999, "mcmc": 1000}
+    counts = {"adc": 1234, "adc-reg": 999, "adc-opacity-reg": 998, "adc-scale-reg": 997, "mcmc": 1000}
     calls = []
 
     def fake_run(cmd, **kwargs):
@@ -175,7 +175,7 @@ def test_adc_check_gives_mcmc_the_adc_count_and_resumes_a_stopped_arm(tmp_path, 
     monkeypatch.setattr(script.subprocess, "run", fake_run)
     monkeypatch.setattr(script.platform, "processor", lambda: "cpu")  # it would run `uname -p`
     monkeypatch.setattr("sys.argv", ["adc_check.py", str(tmp_path), "--scene", str(tmp_path),
-                                     "--arms", "adc,adc-reg,mcmc", "--iters", "50"])
+                                     "--arms", "adc,adc-reg,adc-scale-reg,mcmc", "--iters", "50"])
     script.main()
     fits = {Path(c[c.index("--out") + 1]).name: c for c in calls if c[1] == "fit"}
     assert fits["mcmc"][fits["mcmc"].index("--budget") + 1] == "1234"
@@ -184,9 +184,14 @@ def test_adc_check_gives_mcmc_the_adc_count_and_resumes_a_stopped_arm(tmp_path, 
     reg = script.ARM_FLAGS["adc-reg"]
     assert reg[:2] == ["--strategy", "adc"]
     assert reg[reg.index("--opacity-reg") + 1] == "0.01" and reg[reg.index("--scale-reg") + 1] == "0.01"
+    assert "--scale-reg" in fits["adc-scale-reg"] and "--opacity-reg" not in fits["adc-scale-reg"]
+    assert "adc-opacity-reg" not in fits  # only the arms asked for run
+    assert "--opacity-reg" in script.ARM_FLAGS["adc-opacity-reg"]
+    assert "--scale-reg" not in script.ARM_FLAGS["adc-opacity-reg"]
     written = json.loads((tmp_path / "adc_check.json").read_text())
     assert written["results"]["3dgs-mcmc"]["train_psnr"] == 40.0
     assert written["adc-reg"]["final_primitives"] == 999
+    assert written["adc-scale-reg"]["final_primitives"] == 997 and written["adc-opacity-reg"] is None
 
 
 def test_turn_penalty_joins_the_loss_of_training_renders_only():
