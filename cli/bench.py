@@ -12,6 +12,7 @@ from rich.table import Table
 
 from splatk.backends import backend_names
 from splatk.colors import COLOR_MODELS
+from splatk.device import resolve_device
 from splatk.kernels import kernel_names
 from splatk.kernels.auto_k import AUTO_K
 from splatk.stages.fit_config import PRIMITIVES, parse_duration
@@ -31,8 +32,8 @@ from splatk.bench import (
 from .common import find_preset
 
 # single-valued flags that go into every method's defaults (flag name -> settings key)
-_DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backend", "seed", "sh_degree",
-                  "primitive")
+_DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backend", "device", "seed",
+                  "sh_degree", "primitive")
 
 
 @click.command("bench")
@@ -58,6 +59,7 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 @click.option("--threads", type=int, help="CPU threads per run (0: all). Recorded in every result.")
 @click.option("--init", type=click.Choice(["auto", "sfm", "random"]), help="Initial primitives.")
 @click.option("--backend", type=click.Choice(["auto", *backend_names()]), help="Rasteriser backend.")
+@click.option("--device", help="Torch device every run fits and is evaluated on: cpu, cuda, cuda:N. [default: cpu]")
 @click.option("--seed", type=int, help="Random seed.")
 @click.option("--sh-degree", type=int, help="Maximum SH degree.")
 @click.option("--primitive", type=click.Choice(PRIMITIVES),
@@ -88,6 +90,8 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
     for name in _DEFAULT_FLAGS:
         if flags.get(name) is not None:
             defaults[name] = flags[name]
+    if "device" in defaults:  # a missing GPU is one line now, not a failed row per run later
+        resolve_device(defaults["device"], defaults.get("backend", "auto"))
     if "time_budget" in defaults:
         try:
             defaults["time_budget"] = parse_duration(defaults["time_budget"])

@@ -5,6 +5,7 @@ import json
 
 import cv2
 import pytest
+import torch
 from click.testing import CliRunner
 
 from splatk.data.synthetic import make_demo_scene
@@ -52,6 +53,31 @@ def test_bench_stability_cli(scene, tmp_path):
     assert all(c["status"] == "ok" and c["initial_psnr"] is not None for c in matrix["cells"])
     assert (tmp_path / "charts" / "stability_demo.png").is_file()
     assert "lr-x10" in res.stdout
+
+
+def test_bench_device_reaches_fit_and_eval(scene, tmp_path):
+    """--device goes into every run's settings; a device this machine lacks stops the bench
+    before any run, with one line, instead of failing every run."""
+    _bench(scene, "--out", tmp_path, "--kernel", "gaussian", "--budget", "100", "--iters", "10",
+           "--threads", "1", "--metrics", "psnr", "--device", "cpu")
+    result = json.loads((tmp_path / "results" / "demo__gaussian-sh-b100.json").read_text())
+    assert result["status"] == "ok" and result["config"]["device"] == "cpu"
+    missing = "cuda:99" if torch.cuda.is_available() else "cuda"
+    res = CliRunner().invoke(cli, ["bench", str(scene), "--out", str(tmp_path / "b2"), "--kernel", "gaussian",
+                                   "--iters", "10", "--device", missing])
+    assert res.exit_code != 0 and "--device" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "b2" / "results").exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
+def test_bench_stability_on_cuda(scene, tmp_path):
+    """`bench --device cuda` fits and evaluates every cell on the GPU with the cuda backend."""
+    _bench(scene, "--out", tmp_path, "--preset", "bench_quick", "--stability", "--iters", "60",
+           "--device", "cuda", "--metrics", "psnr")
+    for path in (tmp_path / "results").glob("*.json"):
+        row = json.loads(path.read_text())
+        assert row["status"] == "ok" and row["config"]["device"] == "cuda" and row["backend"] == "cuda", row
+        assert row["psnr"] == row["psnr"] and row["iterations"] == 60, (path.name, row["psnr"])
 
 
 def test_method_flags_make_a_grid():

@@ -162,7 +162,8 @@ def run_one(
             run_fit(scene, run, fit_cfg, overwrite=True, config_sources={"bench": "method + defaults"})
         if fit_cfg.threads:
             torch.set_num_threads(fit_cfg.threads)
-        metrics = run_eval(run, cfg.metrics, lpips_net=cfg.lpips_net, backend=fit_cfg.backend)
+        metrics = run_eval(run, cfg.metrics, lpips_net=cfg.lpips_net, backend=fit_cfg.backend,
+                           device=fit_cfg.device)
     except (InputError, ValueError, RuntimeError) as e:
         row.update({"status": "failed", "error": f"{type(e).__name__}: {e}", "config": fit_cfg.to_dict()})
         write_json(result_path, row)
