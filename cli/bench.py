@@ -21,6 +21,7 @@ from splatk.bench import (
     STABILITY_CONDITIONS,
     STABILITY_KERNELS,
     BenchConfig,
+    BenchStopped,
     load_bench_file,
     load_results,
     method_id,
@@ -29,7 +30,7 @@ from splatk.bench import (
     table_rows,
 )
 
-from .common import find_preset
+from .common import find_preset, signal_name, stop_requests
 
 # single-valued flags that go into every method's defaults (flag name -> settings key)
 _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backend", "device", "seed",
@@ -76,6 +77,8 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             no_scale_schedules, stability, charts_only, quiet, **flags):
     """Fit and evaluate every method on every SCENE into OUT; resumable (finished runs are
     skipped); draws PSNR vs render time / training time / footprint with the Pareto front.
+    SIGTERM or Ctrl-C stops the fit in progress at its next iteration with a checkpoint (exit
+    128 + the signal); the same command goes on from there.
 
     \b
     Examples:
@@ -139,6 +142,23 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             extra = f": {info['error']}"
         console.print(f"[bold]{kind:>9}[/] {info['scene']} / {info['method']}{extra}")
 
+    with stop_requests() as stop:
+        try:
+            res = _run(scenes, out, cfg, data, defaults, flags, budget, stability, charts_only, on_event,
+                       should_stop=lambda: stop["signal"] is not None)
+        except BenchStopped as e:
+            # a stopped bench is not a finished one: schedulers and `timeout` must see that
+            kept = f"; {e.run} keeps its checkpoint" if e.run else ""
+            console.print(f"[yellow]stopped by {signal_name(stop['signal'])}: finished runs keep their "
+                          f"results{kept}; the same command goes on from there")
+            raise SystemExit(128 + stop["signal"])
+    for p in res.charts if res else []:
+        console.print(f"wrote {p}")
+
+
+def _run(scenes, out, cfg, data, defaults, flags, budget, stability, charts_only, on_event, should_stop):
+    """The bench's work, as the command's flags choose it; the result (None: charts only)."""
+    console = Console(stderr=True)
     if stability:
         st = data.get("stability") or {}
         base = {**defaults, **(st.get("defaults") or {})}
@@ -149,9 +169,11 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             base["budget"] = budget[0]
         cfg.defaults = base
         res = run_stability(scenes, cfg, out, kernels=st.get("kernels") or STABILITY_KERNELS,
-                            conditions=st.get("conditions") or STABILITY_CONDITIONS, on_event=on_event)
+                            conditions=st.get("conditions") or STABILITY_CONDITIONS, on_event=on_event,
+                            should_stop=should_stop)
         print_stability(res.rows)
-    elif charts_only:
+        return res
+    if charts_only:
         from splatk.bench.charts import draw_pareto_charts, draw_stability_heatmap
 
         rows = load_results(Path(out) / "results")
@@ -160,15 +182,12 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             matrix = json.loads(mp.read_text())
             paths += draw_stability_heatmap(matrix, Path(out) / "charts" / f"stability_{matrix['scene']}")
         print_table(rows)
-        res = None
         for p in paths:
             console.print(f"wrote {p}")
-        return
-    else:
-        res = run_bench(scenes, cfg, out, on_event=on_event)
-        print_table(res.rows)
-    for p in res.charts:
-        console.print(f"wrote {p}")
+        return None
+    res = run_bench(scenes, cfg, out, on_event=on_event, should_stop=should_stop)
+    print_table(res.rows)
+    return res
 
 
 def _override(method: dict, o: dict) -> dict:

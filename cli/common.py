@@ -1,8 +1,11 @@
 """Shared CLI plumbing: presets, value parsing, error reporting. No engine logic here."""
 from __future__ import annotations
 
+import signal
 import sys
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable, Iterator
 
 import click
 import yaml
@@ -93,3 +96,35 @@ def _typed(ctx: click.Context, param: click.Parameter, value, preset_path: Path 
 def fail(message: str, code: int = 2) -> None:
     click.echo(f"splatk: error: {message}", err=True)
     sys.exit(code)
+
+
+@contextmanager
+def stop_requests(at_once: Callable[[], bool] = lambda: False) -> Iterator[dict]:
+    """Turn SIGTERM (a scheduler's or `timeout`'s stop) and the first Ctrl-C into a request that
+    long work polls at its next iteration boundary, so the checkpoint it then saves holds whole
+    iterations (a KeyboardInterrupt can land inside density control, between two tensors'
+    updates). A second Ctrl-C, or one while ``at_once()`` is true, interrupts at once.
+
+    Yields ``{"signal": None}``; ``"signal"`` becomes the signal's number once one asks to stop.
+    pycolmap installs glog's handler (a stack dump, then death) for SIGTERM when it is first
+    imported, and the last handler installed wins: splatk.data imports it before any command
+    runs, so this one is installed after it (tests/cli/test_signals.py sends the real signal).
+    """
+    state: dict = {"signal": None}
+
+    def handle(signum, frame):
+        if signum == signal.SIGINT and (state["signal"] is not None or at_once()):
+            raise KeyboardInterrupt
+        state["signal"] = signum
+
+    old_term = signal.signal(signal.SIGTERM, handle)
+    old_int = signal.signal(signal.SIGINT, handle)
+    try:
+        yield state
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+        signal.signal(signal.SIGINT, old_int)
+
+
+def signal_name(signum: int) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name

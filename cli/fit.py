@@ -19,7 +19,7 @@ from splatk.train.strategies import STRATEGIES
 from splatk.stages.fit import run_fit
 from splatk.stages.fit_config import PRIMITIVES, fit_config_from_options
 
-from .common import load_preset, resolve_options
+from .common import load_preset, resolve_options, signal_name, stop_requests
 from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
 
 
@@ -240,22 +240,12 @@ def _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options,
             progress.update(task["id"], completed=info.it, total=total, loss=info.loss, psnr=info.psnr,
                             num=info.num_primitives, rate=rate)
 
-    stop = {"flag": False, "signal": None}
-
-    def handle_signal(signum, frame):
-        # SIGTERM and the first Ctrl-C stop at the next iteration boundary, so the checkpoint
-        # holds whole iterations (a KeyboardInterrupt can land inside density control, between
-        # two tensors' updates); a second Ctrl-C, or one before training started, stops at once
-        if signum == signal.SIGINT and (stop["flag"] or not task.get("started")):
-            raise KeyboardInterrupt
-        stop["flag"], stop["signal"] = True, signum
-
-    old = signal.signal(signal.SIGTERM, handle_signal)
-    old_int = signal.signal(signal.SIGINT, handle_signal)
     try:
-        result = run_fit(scene, out, cfg, overwrite=overwrite, resume=resume, config_sources=sources,
-                      on_start=on_start, on_step=on_step, should_stop=lambda: stop["flag"],
-                      resume_options=resume_options)
+        # Ctrl-C before training started stops at once: there is nothing to checkpoint yet
+        with stop_requests(at_once=lambda: not task.get("started")) as stop:
+            result = run_fit(scene, out, cfg, overwrite=overwrite, resume=resume, config_sources=sources,
+                             on_start=on_start, on_step=on_step, should_stop=lambda: stop["signal"] is not None,
+                             resume_options=resume_options)
     except KeyboardInterrupt:
         if progress is not None:
             progress.stop()
@@ -263,8 +253,6 @@ def _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options,
             console.print(f"[yellow]interrupted; checkpoint saved, continue with: splatk fit --resume --out {out}")
         raise SystemExit(130)
     finally:
-        signal.signal(signal.SIGTERM, old)
-        signal.signal(signal.SIGINT, old_int)
         if progress is not None:
             progress.stop()
     run = result.path
@@ -286,8 +274,8 @@ def _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options,
     console.print(f"wrote {run / 'model.pt'}")
     if stop["signal"] is not None:
         # a stopped run is not a finished one: schedulers and `timeout` must see that
-        name = "Ctrl-C" if stop["signal"] == signal.SIGINT else signal.Signals(stop["signal"]).name
-        console.print(f"[yellow]stopped by {name}; checkpoint saved, continue with: splatk fit --resume --out {out}")
+        console.print(f"[yellow]stopped by {signal_name(stop['signal'])}; checkpoint saved, "
+                      f"continue with: splatk fit --resume --out {out}")
         raise SystemExit(128 + stop["signal"])
 
 

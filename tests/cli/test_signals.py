@@ -40,3 +40,25 @@ def test_sigterm_saves_and_exits_143(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert json.loads((out / "fit.json").read_text())["iterations"] == it + 10
+
+
+def test_sigterm_stops_bench_with_the_checkpoint_and_no_result(tmp_path):
+    """`bench` under SIGTERM stops the fit in progress as `fit` does (no stack dump from
+    pycolmap's handler, which replaces Python's when imported later), writes no result for the
+    unfinished run, and exits 143."""
+    scene = make_demo_scene(tmp_path / "scene", num_views=6, size=24)
+    out = tmp_path / "bench"
+    proc = subprocess.Popen(splatk("bench", scene, "--out", out, "--kernel", "gaussian", "--budget", "100",
+                                   "--iters", "100000", "--backend", "torch", "--threads", "1", "--metrics", "psnr"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    logs = []
+    while time.time() < deadline and not (logs and logs[0].read_text().count("\n") >= 2):
+        time.sleep(0.2)
+        logs = list(out.glob("runs/*/*/train_log.jsonl"))
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "stopped by SIGTERM" in err and "Aborted" not in err and "Traceback" not in err, err
+    assert (logs[0].parent / "checkpoints" / "last.pt").is_file()
+    assert not list(out.glob("results/*.json"))

@@ -16,6 +16,7 @@ from splatk.machine import CPU_FEATURES
 from splatk.bench import runner
 from splatk.bench import (
     BenchConfig,
+    BenchStopped,
     classify,
     fit_config_for,
     method_id,
@@ -109,6 +110,28 @@ def test_partial_run_resumes_from_checkpoint(scene, tmp_path, monkeypatch):
     res = run_bench([scene], cfg, tmp_path)
     assert calls == [True]  # resumed, not started over
     assert res.rows[0]["iterations"] == 40
+
+
+def test_stop_request_keeps_the_checkpoint_and_writes_no_result(scene, tmp_path):
+    """A stop request (SIGTERM, Ctrl-C) mid-fit ends the bench without evaluating the unfinished
+    run; the next call resumes that fit and finishes the grid."""
+    cfg = BenchConfig(methods=[{"kernel": "gaussian"}, {"kernel": "beta"}], defaults=BASE, metrics=("psnr",))
+    polls = {"n": 0}
+
+    def stop_after_some_steps():
+        polls["n"] += 1
+        return polls["n"] > 15
+
+    with pytest.raises(BenchStopped) as stopped:
+        run_bench([scene], cfg, tmp_path, should_stop=stop_after_some_steps)
+    run = tmp_path / "runs" / "demo" / method_id(cfg.methods[0])
+    assert stopped.value.run == run and (run / "checkpoints" / "last.pt").is_file()
+    assert 0 < json.loads((run / "fit.json").read_text())["iterations"] < BASE["iters"]
+    assert not list((tmp_path / "results").glob("*.json"))  # neither run counts as done
+    events = []
+    res = run_bench([scene], cfg, tmp_path, on_event=lambda kind, info: events.append((kind, info["method"])))
+    assert events[0] == ("resume", method_id(cfg.methods[0])) and ("fit", method_id(cfg.methods[1])) in events
+    assert [r["iterations"] for r in res.rows] == [BASE["iters"]] * 2
 
 
 def test_pareto_front_on_hand_made_points():

@@ -37,6 +37,16 @@ from .methods import PRETRAIN_KEYS, fit_config_for, method_id, pretraining
 RESULT_KEYS = ("psnr", "ssim", "lpips", "train_seconds", "render_ms", "footprint_mb", "num_primitives")
 
 
+class BenchStopped(Exception):
+    """A stop request (SIGTERM, Ctrl-C) ended the bench between or inside runs: finished runs
+    keep their results, a fit it stopped keeps its checkpoint (``run``), and the same command
+    goes on from there."""
+
+    def __init__(self, run: Path | None):
+        self.run = run
+        super().__init__(f"bench stopped{f' in {run}' if run else ''}")
+
+
 @dataclass
 class BenchConfig:
     """What `splatk bench` runs: methods x scenes, with shared defaults."""
@@ -120,11 +130,15 @@ def run_one(
     cfg: BenchConfig,
     on_event: Callable[[str, dict], None] | None = None,
     extra: dict | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> dict:
     """Fit + eval one (scene, method) under ``root`` (runs/, results/); returns its result row.
 
-    A finished result is returned as it is, with ``"reused": True``.
+    A finished result is returned as it is, with ``"reused": True``. ``should_stop`` is polled
+    between training iterations; once it is true the fit saves its checkpoint and
+    :class:`BenchStopped` is raised instead of evaluating a run that did not finish.
     """
+    stop_requested = should_stop or (lambda: False)
     sname, mid = scene_name(scene), method_id(method, cfg.defaults)
     result_path = root / "results" / f"{sname}__{mid}.json"
     info = {"scene": sname, "method": mid, "result": str(result_path)}
@@ -140,6 +154,8 @@ def run_one(
             if on_event:
                 on_event("reuse", info)
             return {**row, "reused": True}
+    if stop_requested():
+        raise BenchStopped(None)
     method = with_pretrained_weights(method, cfg.defaults, root, on_event)
     fit_cfg, notes = fit_config_for(method, cfg.defaults, cfg.scale_schedules, cfg.scale_lrs)
     if "init" not in spec and not has_points(scene):
@@ -155,11 +171,14 @@ def run_one(
         elif same and (run / "checkpoints" / "last.pt").is_file():
             if on_event:
                 on_event("resume", info)
-            run_fit(scene, run, fit_cfg, resume=True)
+            run_fit(scene, run, fit_cfg, resume=True, should_stop=stop_requested)
         else:
             if on_event:
                 on_event("fit", info)
-            run_fit(scene, run, fit_cfg, overwrite=True, config_sources={"bench": "method + defaults"})
+            run_fit(scene, run, fit_cfg, overwrite=True, config_sources={"bench": "method + defaults"},
+                    should_stop=stop_requested)
+        if stop_requested():
+            raise BenchStopped(run)
         if fit_cfg.threads:
             torch.set_num_threads(fit_cfg.threads)
         metrics = run_eval(run, cfg.metrics, lpips_net=cfg.lpips_net, backend=fit_cfg.backend,
@@ -266,6 +285,7 @@ def run_bench(
     out: str | Path,
     on_event: Callable[[str, dict], None] | None = None,
     charts: bool = True,
+    should_stop: Callable[[], bool] | None = None,
 ) -> BenchResult:
     """Run every (scene, method) not finished yet, then chart all results in OUT/results.
 
@@ -285,7 +305,7 @@ def run_bench(
         fit_config_for(m, cfg.defaults, cfg.scale_schedules, cfg.scale_lrs)  # fail on bad settings before any training
     for scene in scenes:
         for m in cfg.methods:
-            run_one(scene, m, out, cfg, on_event)
+            run_one(scene, m, out, cfg, on_event, should_stop=should_stop)
     rows = load_results(out / "results")
     paths = draw_pareto_charts(rows, out / "charts") if charts else []
     return BenchResult(rows, paths, out)

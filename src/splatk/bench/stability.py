@@ -71,12 +71,14 @@ def run_stability(
     kernels: dict | None = None,
     conditions: dict | None = None,
     on_event: Callable[[str, dict], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> BenchResult:
     """The stability matrix: kernels x conditions per scene, into OUT/stability/.
 
     Writes OUT/stability/results/<scene>__<row>__<col>.json per cell,
     OUT/stability/matrix_<scene>.json (every cell's flags and PSNRs) and the heat map
     OUT/charts/stability_<scene>.{png,svg}. ``cfg.defaults`` is the base of every cell.
+    ``should_stop``: as for :func:`~.runner.run_one` (a stopped matrix is finished by the same call).
     """
     from .charts import draw_stability_heatmap
 
@@ -99,7 +101,7 @@ def run_stability(
                 # fit's defaults, short-run LR boost included, so the matrix tests what a user runs
                 sub = BenchConfig(methods=[m], defaults={}, metrics=cfg.metrics, lpips_net=cfg.lpips_net,
                                   scale_schedules=cfg.scale_schedules, scale_lrs=cfg.scale_lrs)
-                r = run_one(scene, m, root, sub, on_event, extra)
+                r = run_one(scene, m, root, sub, on_event, extra, should_stop=should_stop)
                 if r.get("status") == "ok":
                     r.update(classify(r.get("initial_psnr"), r.get("psnr"), r.get("nan_rollbacks", 0)))
                     write_json(root / "results" / f"{sname}__{method_id(m)}.json",
