@@ -1,6 +1,7 @@
 """The `splatk` command: a click group; each sub-command lives in its own module."""
 from __future__ import annotations
 
+import signal
 import sys
 import traceback
 
@@ -80,7 +81,16 @@ def main() -> None:
     from splatk._malloc import tune_malloc
 
     tune_malloc()
+    # pycolmap, imported with splatk.data, installs glog's SIGTERM handler: a stack dump, then
+    # death. A command with no stop logic of its own (fit and bench have theirs) ends as Python
+    # ends on Ctrl-C instead: `finally` blocks run, partial files stay temporary, exit 128 + 15.
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     cli(prog_name="splatk")
+
+
+def _exit_on_sigterm(signum, frame):
+    print("splatk: stopped by SIGTERM", file=sys.stderr)
+    raise SystemExit(128 + signum)
 
 
 if __name__ == "__main__":

@@ -62,3 +62,17 @@ def test_sigterm_stops_bench_with_the_checkpoint_and_no_result(tmp_path):
     assert "stopped by SIGTERM" in err and "Aborted" not in err and "Traceback" not in err, err
     assert (logs[0].parent / "checkpoints" / "last.pt").is_file()
     assert not list(out.glob("results/*.json"))
+
+
+def test_sigterm_ends_a_command_without_stop_logic_in_one_line(tmp_path):
+    """A command that does not checkpoint (here `pretrain`) ends on SIGTERM with exit 143 and one
+    line, not pycolmap's stack dump, and leaves no weights file behind."""
+    out = tmp_path / "weights.pt"
+    proc = subprocess.Popen(splatk("pretrain", "--steps", "10000000", "--out", out),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stderr.readline()  # the first progress line: the command is running
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "stopped by SIGTERM" in err and "Aborted" not in err and "Traceback" not in err, err
+    assert not out.exists()
