@@ -6,5 +6,5 @@ from .stability import (COLLAPSE_DB, STABILITY_CONDITIONS, STABILITY_KERNELS, cl
                         stability_methods)
 
 __all__ = ["METHOD_KEYS", "expand_grid", "fit_config_for", "load_bench_file", "method_id", "RESULT_KEYS",
-           "BenchConfig", "BenchResult", "BenchStopped", "load_results", "run_bench", "run_one", "table_rows", "COLLAPSE_DB",
-           "STABILITY_CONDITIONS", "STABILITY_KERNELS", "classify", "run_stability", "stability_methods"]
+           "BenchConfig", "BenchResult", "BenchStopped", "load_results", "run_bench", "run_one", "table_rows",
+           "COLLAPSE_DB", "STABILITY_CONDITIONS", "STABILITY_KERNELS", "classify", "run_stability", "stability_methods"]
