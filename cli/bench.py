@@ -142,38 +142,7 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             extra = f": {info['error']}"
         console.print(f"[bold]{kind:>9}[/] {info['scene']} / {info['method']}{extra}")
 
-    with stop_requests() as stop:
-        try:
-            res = _run(scenes, out, cfg, data, defaults, flags, budget, stability, charts_only, on_event,
-                       should_stop=lambda: stop["signal"] is not None)
-        except BenchStopped as e:
-            # a stopped bench is not a finished one: schedulers and `timeout` must see that
-            kept = f"; {e.run} keeps its checkpoint" if e.run else ""
-            console.print(f"[yellow]stopped by {signal_name(stop['signal'])}: finished runs keep their "
-                          f"results{kept}; the same command goes on from there")
-            raise SystemExit(128 + stop["signal"])
-    for p in res.charts if res else []:
-        console.print(f"wrote {p}")
-
-
-def _run(scenes, out, cfg, data, defaults, flags, budget, stability, charts_only, on_event, should_stop):
-    """The bench's work, as the command's flags choose it; the result (None: charts only)."""
-    console = Console(stderr=True)
-    if stability:
-        st = data.get("stability") or {}
-        base = {**defaults, **(st.get("defaults") or {})}
-        for name in _DEFAULT_FLAGS:  # the command line still wins
-            if flags.get(name) is not None:
-                base[name] = defaults[name]
-        if budget:
-            base["budget"] = budget[0]
-        cfg.defaults = base
-        res = run_stability(scenes, cfg, out, kernels=st.get("kernels") or STABILITY_KERNELS,
-                            conditions=st.get("conditions") or STABILITY_CONDITIONS, on_event=on_event,
-                            should_stop=should_stop)
-        print_stability(res.rows)
-        return res
-    if charts_only:
+    if charts_only and not stability:
         from splatk.bench.charts import draw_pareto_charts, draw_stability_heatmap
 
         rows = load_results(Path(out) / "results")
@@ -184,10 +153,35 @@ def _run(scenes, out, cfg, data, defaults, flags, budget, stability, charts_only
         print_table(rows)
         for p in paths:
             console.print(f"wrote {p}")
-        return None
-    res = run_bench(scenes, cfg, out, on_event=on_event, should_stop=should_stop)
-    print_table(res.rows)
-    return res
+        return
+
+    with stop_requests() as stop:
+        should_stop = lambda: stop["signal"] is not None  # noqa: E731
+        try:
+            if stability:
+                st = data.get("stability") or {}
+                base = {**defaults, **(st.get("defaults") or {})}
+                for name in _DEFAULT_FLAGS:  # the command line still wins
+                    if flags.get(name) is not None:
+                        base[name] = defaults[name]
+                if budget:
+                    base["budget"] = budget[0]
+                cfg.defaults = base
+                res = run_stability(scenes, cfg, out, kernels=st.get("kernels") or STABILITY_KERNELS,
+                                    conditions=st.get("conditions") or STABILITY_CONDITIONS, on_event=on_event,
+                                    should_stop=should_stop)
+                print_stability(res.rows)
+            else:
+                res = run_bench(scenes, cfg, out, on_event=on_event, should_stop=should_stop)
+                print_table(res.rows)
+        except BenchStopped as e:
+            # a stopped bench is not a finished one: schedulers and `timeout` must see that
+            kept = f"; {e.run} keeps its checkpoint" if e.run else ""
+            console.print(f"[yellow]stopped by {signal_name(stop['signal'])}: finished runs keep their "
+                          f"results{kept}; the same command goes on from there")
+            raise SystemExit(128 + stop["signal"])
+    for p in res.charts:
+        console.print(f"wrote {p}")
 
 
 def _override(method: dict, o: dict) -> dict:
