@@ -10,6 +10,7 @@ every other setting default, under one of two protocols:
         [--kernels gaussian,learned,learned-k2] [--seed 0] [--jobs 2] [--table-only]
         [--device cuda] [--data DIR]
     python benchmarks/learned_validation.py OUT --protocol 30k --over-seeds [--scenes ...] [--kernels ...]
+        [--baseline gaussian]
 
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k, ``learned-turn`` with every default and decision
@@ -34,11 +35,12 @@ where they are not at ``../shared/data``.
 
 ``--over-seeds`` fits nothing: for every seed whose runs are under OUT/runs/ or whose result file
 is in OUT it pairs each learned cell (its run folder, else its row in the result file) with the
-Gaussian of the same scene and seed, and prints per scene the seeds, each kernel's
-mean and the mean difference with its standard error over the seeds (the spread of the
-differences over sqrt(seeds)); then the average of the scenes' mean differences per set. Writes
-OUT/learned_validation[_30k]_over_seeds.json. ``OUT = benchmarks/results`` tabulates the
-committed result files.
+``--baseline`` cell (the Gaussian unless told; ``learned-k2`` to weigh a candidate k) of the same
+scene and seed, and prints per scene the seeds, each kernel's mean and the mean difference with its
+standard error over the seeds (the spread of the differences over sqrt(seeds)); then the average
+of the scenes' mean differences per set. Writes OUT/learned_validation[_30k]_over_seeds.json
+(``_over_seeds_vs_BASELINE.json`` for another baseline). ``OUT = benchmarks/results`` tabulates
+the committed result files.
 """
 from __future__ import annotations
 
@@ -188,9 +190,10 @@ def seeds_run(out: Path, protocol: str) -> list[int]:
     return sorted(found)
 
 
-def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str]) -> dict:
-    """Each learned kernel against the Gaussian of the same scene and seed, over every seed run."""
-    learned = [k for k in kernels if k != "gaussian"]
+def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str], baseline: str = "gaussian") -> dict:
+    """Each other kernel against ``baseline`` (the Gaussian, or the learned k a candidate would
+    replace) of the same scene and seed, over every seed run."""
+    learned = [k for k in kernels if k != baseline]
     seeds = seeds_run(out, protocol)
     saved = {seed: saved_rows(out, protocol, seed) for seed in seeds}
     per_scene = []
@@ -199,17 +202,17 @@ def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str]) 
             pairs = []
             for seed in seeds:
                 # a run folder where there is one, else the row its grid saved
-                gaussian = (run_one(scene, "gaussian", protocol, seed, out, table_only=True)
-                            or saved[seed].get((scene, "gaussian")))
+                base = (run_one(scene, baseline, protocol, seed, out, table_only=True)
+                        or saved[seed].get((scene, baseline)))
                 other = run_one(scene, kernel, protocol, seed, out, table_only=True) or saved[seed].get((scene, kernel))
-                if gaussian and other:
-                    pairs.append((seed, gaussian["test_psnr"], other["test_psnr"]))
+                if base and other:
+                    pairs.append((seed, base["test_psnr"], other["test_psnr"]))
             if not pairs:
                 continue
             gaps = [o - g for _, g, o in pairs]
             per_scene.append({
                 "scene": scene, "kernel": kernel, "set": set_of(scene),
-                "seeds": [s for s, _, _ in pairs], "gaussian_mean": statistics.mean(g for _, g, _ in pairs),
+                "seeds": [s for s, _, _ in pairs], "baseline_mean": statistics.mean(g for _, g, _ in pairs),
                 "kernel_mean": statistics.mean(o for _, _, o in pairs), "gap_mean": statistics.mean(gaps),
                 # None for one seed: no spread to measure
                 "gap_standard_error": statistics.stdev(gaps) / len(gaps) ** 0.5 if len(gaps) > 1 else None})
@@ -220,20 +223,21 @@ def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str]) 
             if rows:
                 averages.append({"kernel": kernel, "set": name, "scenes": len(rows),
                                  "gap_mean": statistics.mean(r["gap_mean"] for r in rows),
-                                 "scenes_below_gaussian": sum(r["gap_mean"] < 0 for r in rows)})
-    return {"protocol": protocol, "seeds_found": seeds, "per_scene": per_scene, "averages": averages}
+                                 "scenes_below_baseline": sum(r["gap_mean"] < 0 for r in rows)})
+    return {"protocol": protocol, "baseline": baseline, "seeds_found": seeds, "per_scene": per_scene,
+            "averages": averages}
 
 
 def print_over_seeds(doc: dict) -> None:
-    print(f"{'scene':<18} {'set':<10} {'kernel':<11} {'seeds':>7} {'gaussian':>9} {'kernel':>9} "
+    print(f"{'scene':<18} {'set':<10} {'kernel':<11} {'seeds':>7} {doc['baseline']:>11} {'kernel':>9} "
           f"{'difference':>11} {'+/- s.e.':>9}")
     for r in doc["per_scene"]:
         error = "-" if r["gap_standard_error"] is None else f"{r['gap_standard_error']:.2f}"
-        print(f"{r['scene']:<18} {r['set']:<10} {r['kernel']:<11} {len(r['seeds']):>7} {r['gaussian_mean']:>9.2f} "
+        print(f"{r['scene']:<18} {r['set']:<10} {r['kernel']:<11} {len(r['seeds']):>7} {r['baseline_mean']:>11.2f} "
               f"{r['kernel_mean']:>9.2f} {r['gap_mean']:>+11.2f} {error:>9}")
     for a in doc["averages"]:
         print(f"{a['kernel']} on the {a['set']} scenes: {a['gap_mean']:+.2f} dB on average over {a['scenes']} "
-              f"scenes' seed means, below the Gaussian on {a['scenes_below_gaussian']}")
+              f"scenes' seed means, below {doc['baseline']} on {a['scenes_below_baseline']}")
 
 
 def main() -> None:
@@ -250,16 +254,19 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="torch device to fit on: cpu or cuda")
     ap.add_argument("--data", type=Path, default=DATA, help="folder of the shared scenes")
     ap.add_argument("--over-seeds", action="store_true",
-                    help="fit nothing: each scene's mean difference to the Gaussian over every seed run")
+                    help="fit nothing: each scene's mean difference to --baseline over every seed run")
+    ap.add_argument("--baseline", default="gaussian",
+                    help="with --over-seeds: the kernel the others are measured against")
     args = ap.parse_args()
     kernels, scenes = args.kernels.split(","), args.scenes.split(",")
     unknown = sorted(set(kernels) - set(KERNELS))
     if unknown:
         ap.error(f"unknown kernel(s) {', '.join(unknown)}; choose from {', '.join(KERNELS)}")
     if args.over_seeds:
-        doc = over_seeds(args.out, args.protocol, scenes, kernels)
+        doc = over_seeds(args.out, args.protocol, scenes, kernels, args.baseline)
         print_over_seeds(doc)
-        (args.out / f"{file_stem(args.protocol)}_over_seeds.json").write_text(json.dumps(doc, indent=1))
+        against = "" if args.baseline == "gaussian" else f"_vs_{args.baseline}"
+        (args.out / f"{file_stem(args.protocol)}_over_seeds{against}.json").write_text(json.dumps(doc, indent=1))
         return
     cells = [(s, k) for s in scenes for k in kernels]
     if not args.table_only:

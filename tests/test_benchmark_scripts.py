@@ -75,7 +75,6 @@ def test_learned_validation_makes_each_scene_once_before_parallel_cells(tmp_path
         if str(cmd[1]).endswith("make_frontal_scene.py"):
             made.append(cmd[3])
             Path(cmd[3]).mkdir(parents=True)
-        return None
 
     fitted = []
     monkeypatch.setattr(script.subprocess, "run", fake_run)
@@ -116,6 +115,23 @@ def test_learned_validation_over_seeds_reads_saved_rows(tmp_path):
     (row,) = doc["per_scene"]
     assert row["seeds"] == [0, 1] and row["set"] == "validation"
     assert math.isclose(row["gap_mean"], 0.75) and math.isclose(row["gap_standard_error"], 0.25)
+
+
+def test_learned_validation_over_seeds_against_another_baseline(tmp_path):
+    """--baseline learned-k2 measures a candidate k against k = 2, and the Gaussian is then just another
+    kernel: the gaps change sign with the baseline."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    for seed, (gaussian, k2, k4) in enumerate([(24.0, 25.0, 25.5), (23.0, 23.5, 24.5)]):
+        rows = [_row("beer_can", "gaussian", gaussian), _row("beer_can", "learned-k2", k2),
+                _row("beer_can", "learned-k4", k4)]
+        script.result_file(tmp_path, "7k", seed).write_text(json.dumps({"rows": rows}))
+    doc = script.over_seeds(tmp_path, "7k", ["beer_can"], ["gaussian", "learned-k2", "learned-k4"],
+                            baseline="learned-k2")
+    gaps = {r["kernel"]: r["gap_mean"] for r in doc["per_scene"]}
+    assert doc["baseline"] == "learned-k2" and set(gaps) == {"gaussian", "learned-k4"}
+    assert math.isclose(gaps["learned-k4"], 0.75) and math.isclose(gaps["gaussian"], -0.75)
+    (k4,) = [a for a in doc["averages"] if a["kernel"] == "learned-k4"]
+    assert k4["scenes_below_baseline"] == 0
 
 
 @pytest.mark.parametrize("stopped", [True, False], ids=["stopped-part-way", "new"])

@@ -7,7 +7,6 @@ import inside a function closes a circle just as well, only later)."""
 import ast
 from pathlib import Path
 
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "splatk"

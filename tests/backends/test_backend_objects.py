@@ -68,7 +68,6 @@ def _inputs(dtype=torch.float64):
 def test_every_op_of_the_cpu_backend_agrees_with_torch(op):
     """The same call on both objects: values and the gradient of a fixed weighted sum."""
     means, quats, scales, vm, K = _inputs()
-    g = torch.Generator().manual_seed(1)
     w, h = 48, 40
 
     def run(backend: Backend):

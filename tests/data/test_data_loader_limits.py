@@ -19,7 +19,6 @@ import pytest
 from click.testing import CliRunner
 
 from splatk.data import _common, load_scene
-from splatk.errors import InputError
 
 from test_data_bad_inputs import copy_demo, expect_error, frames_json
 
