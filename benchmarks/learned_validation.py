@@ -193,12 +193,12 @@ def seeds_run(out: Path, protocol: str) -> list[int]:
 def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str], baseline: str = "gaussian") -> dict:
     """Each other kernel against ``baseline`` (the Gaussian, or the learned k a candidate would
     replace) of the same scene and seed, over every seed run."""
-    learned = [k for k in kernels if k != baseline]
+    others = [k for k in kernels if k != baseline]
     seeds = seeds_run(out, protocol)
     saved = {seed: saved_rows(out, protocol, seed) for seed in seeds}
     per_scene = []
     for scene in scenes:
-        for kernel in learned:
+        for kernel in others:
             pairs = []
             for seed in seeds:
                 # a run folder where there is one, else the row its grid saved
@@ -217,7 +217,7 @@ def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str], 
                 # None for one seed: no spread to measure
                 "gap_standard_error": statistics.stdev(gaps) / len(gaps) ** 0.5 if len(gaps) > 1 else None})
     averages = []
-    for kernel in learned:
+    for kernel in others:
         for name in ("tuning", "validation"):
             rows = [r for r in per_scene if r["kernel"] == kernel and r["set"] == name]
             if rows:
