@@ -36,8 +36,9 @@ where they are not at ``../shared/data``.
 ``--over-seeds`` fits nothing: for every seed whose runs are under OUT/runs/ or whose result file
 is in OUT it pairs each learned cell (its run folder, else its row in the result file) with the
 ``--baseline`` cell (the Gaussian unless told; the k a candidate would replace, such as
-``learned``, the default that took k = 2 in every 7k run) of the same scene and seed, and prints per scene the seeds, each kernel's mean and the mean difference with its
-standard error over the seeds (the spread of the differences over sqrt(seeds)); then the average
+``learned``, the default that took k = 2 in every 7k run) of the same scene and seed, and prints
+per scene the seeds, each kernel's mean and the mean difference with its standard error over the
+seeds (the spread of the differences over sqrt(seeds)); then the average
 of the scenes' mean differences per set. Writes OUT/learned_validation[_30k]_over_seeds.json
 (``_over_seeds_vs_BASELINE.json`` for another baseline). ``OUT = benchmarks/results`` tabulates
 the committed result files.
