@@ -124,6 +124,57 @@ def test_fit_eval_and_resume_on_cuda(primitive, kernel, tmp_path):
     assert abs(gpu["mean"]["ssim"] - cpu["mean"]["ssim"]) < 1e-4
 
 
+def _stopped_demo_fit(tmp_path, device: str, kernel: str = "learned"):
+    """A demo-scene fit on ``device`` interrupted at iteration 100 of 200: (scene, run, config)."""
+    scene = make_demo_scene(tmp_path / "demo", num_views=8, size=32)
+    train = TrainConfig(iters=200, budget=400, device=device)
+    cfg = FitConfig(kernel=kernel, sh_degree=1, device=device, backend="auto", train=train)
+    scale_schedules_to_run(cfg)
+    run, calls = tmp_path / "run", {"n": 0}
+
+    def ctrl_c():
+        calls["n"] += 1
+        if calls["n"] == 100:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_fit(scene, run, cfg, should_stop=ctrl_c)
+    return scene, run, cfg
+
+
+def test_resume_takes_a_checkpoint_whose_mcmc_generator_is_another_devices(tmp_path):
+    """A GPU's generator keeps a 16-byte state where the CPU's keeps 5,056 bytes: resuming on
+    the CPU a run that a GPU wrote (here: its checkpoint given such a state) goes on, draws from
+    a stream the seed and the iteration fix, and says so in the run's events."""
+    scene, run, cfg = _stopped_demo_fit(tmp_path, "cpu")
+    ckpt = run / "checkpoints" / "last.pt"
+    state = torch.load(ckpt, weights_only=True)
+    state["trainer"]["mcmc_gen"] = torch.zeros(16, dtype=torch.uint8)
+    torch.save(state, ckpt)
+    stopped_at = state["trainer"]["it"]
+    run_fit(scene, run, cfg, resume=True)
+    summary = json.loads((run / "fit.json").read_text())
+    assert summary["iterations"] == 200
+    moved = [e for e in summary["events"] if e["event"] == "device_changed"]
+    assert [e["iteration"] for e in moved] == [stopped_at]
+
+
+@cuda
+@pytest.mark.parametrize("first, then", [("cuda", "cpu"), ("cpu", "cuda")])
+def test_a_run_goes_on_on_another_device(first, then, tmp_path):
+    """`fit --resume --device D` moves a stopped run between the GPU and the CPU: the checkpoint
+    loads whatever device wrote it, and the run finishes and learns on the other one."""
+    scene, run, _ = _stopped_demo_fit(tmp_path, first)
+    stopped_at = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["trainer"]["it"]
+    run_fit(scene, run, None, resume=True, resume_options={"device": then})
+    summary = json.loads((run / "fit.json").read_text())
+    assert summary["iterations"] == 200
+    assert [e["iteration"] for e in summary["events"] if e["event"] == "device_changed"] == [stopped_at]
+    psnr = run_eval(run, ("psnr",), device="cpu", backend="torch")["mean"]["psnr"]
+    # 200 iterations of the learned kernel take the demo scene from 10.6 to 12.5 dB on the CPU
+    assert psnr > summary["initial_psnr"] + 1.0, (summary["initial_psnr"], psnr)
+
+
 @cuda
 def test_budget_auto_on_cuda(tmp_path):
     """--budget auto's short runs, held-out renders, compaction and prune run on the GPU."""

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import pytest
 import torch
+import yaml
 
 from splatk.data.synthetic import make_demo_scene
 from splatk.errors import InputError
@@ -132,6 +133,35 @@ def test_stop_request_keeps_the_checkpoint_and_writes_no_result(scene, tmp_path)
     res = run_bench([scene], cfg, tmp_path, on_event=lambda kind, info: events.append((kind, info["method"])))
     assert events[0] == ("resume", method_id(cfg.methods[0])) and ("fit", method_id(cfg.methods[1])) in events
     assert [r["iterations"] for r in res.rows] == [BASE["iters"]] * 2
+
+
+def test_a_grid_stopped_with_one_placement_goes_on_with_another(scene, tmp_path):
+    """Threads, backend and device say where a run executes, not what it is: a stopped cell
+    resumes with the values given now (its config records them) instead of starting over, and a
+    finished result made with other values is reused, not refused as other settings."""
+    methods = [{"kernel": "gaussian"}, {"kernel": "beta"}]
+    first = BenchConfig(methods=methods, defaults=BASE, metrics=("psnr",))
+    polls = {"n": 0}
+
+    def stop_in_the_second_run():
+        polls["n"] += 1
+        return polls["n"] > 60
+
+    with pytest.raises(BenchStopped) as stopped:
+        run_bench([scene], first, tmp_path, should_stop=stop_in_the_second_run)
+    assert stopped.value.run == tmp_path / "runs" / "demo" / method_id(methods[1])
+    done_before = json.loads((stopped.value.run / "fit.json").read_text())["iterations"]
+    assert 0 < done_before < BASE["iters"]
+    elsewhere = BenchConfig(methods=methods, defaults={**BASE, "threads": 2, "backend": "auto"},
+                            metrics=("psnr",))
+    events = []
+    res = run_bench([scene], elsewhere, tmp_path, on_event=lambda kind, info: events.append((kind, info["method"])))
+    assert events[:2] == [("reuse", method_id(methods[0])), ("resume", method_id(methods[1]))]
+    assert [r["iterations"] for r in res.rows] == [BASE["iters"]] * 2
+    doc = yaml.safe_load((stopped.value.run / "config.yaml").read_text())
+    assert doc["settings"]["threads"] == 2 and doc["settings"]["backend"] == "auto"
+    # went on from the checkpoint, not from iteration 0
+    assert doc["sources"]["threads"] == f"changed on resume at iteration {done_before}: 2"
 
 
 def test_pareto_front_on_hand_made_points():

@@ -10,8 +10,9 @@ Layout of OUT::
 
 Resumable: a run whose result JSON exists is not touched again; a run folder with a checkpoint
 but no finished fit continues with ``run_fit(resume=True)``; a finished fit without a result is
-only evaluated. Charts and the table cover every result in OUT/results, so shell loops that call
-`splatk bench` once per scene into the same OUT add up.
+only evaluated. Threads, backend and device are not part of what a run is: a grid stopped on one
+machine goes on with other values of them. Charts and the table cover every result in
+OUT/results, so shell loops that call `splatk bench` once per scene into the same OUT add up.
 """
 from __future__ import annotations
 
@@ -95,13 +96,27 @@ def _diff(a: dict, b: dict) -> str:
     return ", ".join(f"{k}: {a.get(k)!r} there, {b.get(k)!r} now" for k in keys) or "?"
 
 
+#: settings that say where and how a run executes, not what it computes (the same names a
+#: `splatk fit --resume` may change): a result or a stopped run made with other values is the
+#: same cell, and a stopped one goes on with the values given now
+PLACEMENT_SETTINGS = ("threads", "backend", "device", "nproc", "checkpoint_every")
+
+
+def _without_placement(settings):
+    """``settings`` (a flat method spec or a nested FitConfig dict) less its placement keys."""
+    if not isinstance(settings, dict):
+        return settings
+    return {k: _without_placement(v) for k, v in settings.items() if k not in PLACEMENT_SETTINGS}
+
+
 def _same_settings(run: Path, cfg: FitConfig) -> bool:
-    """Whether the run folder was started with ``cfg`` (a stale partial run is started over)."""
+    """Whether the run folder was started with ``cfg``, placement aside (a stale partial run is
+    started over)."""
     try:
         saved = yaml.safe_load((run / "config.yaml").read_text())["settings"]
     except (OSError, KeyError, TypeError, yaml.YAMLError):
         return False
-    return _normalise(saved) == _normalise(cfg.to_dict())
+    return _without_placement(_normalise(saved)) == _without_placement(_normalise(cfg.to_dict()))
 
 
 def write_json(path: Path, obj) -> None:
@@ -147,9 +162,10 @@ def run_one(
     if result_path.is_file():
         row = json.loads(result_path.read_text())
         if row.get("status") == "ok":
-            if row.get("spec") != spec:
+            saved_spec = _without_placement(row.get("spec") or {})
+            if saved_spec != _without_placement(spec):
                 raise InputError(result_path, f"a result for {mid} exists with other settings "
-                                 f"({_diff(row.get('spec') or {}, spec)})",
+                                 f"({_diff(saved_spec, _without_placement(spec))})",
                                  "use another --out, give the method a name:, or delete that result")
             if on_event:
                 on_event("reuse", info)
@@ -171,7 +187,8 @@ def run_one(
         elif same and (run / "checkpoints" / "last.pt").is_file():
             if on_event:
                 on_event("resume", info)
-            run_fit(scene, run, fit_cfg, resume=True, should_stop=stop_requested)
+            placement = {k: getattr(fit_cfg, k) for k in PLACEMENT_SETTINGS if k != "nproc"}
+            run_fit(scene, run, fit_cfg, resume=True, should_stop=stop_requested, resume_options=placement)
         else:
             if on_event:
                 on_event("fit", info)

@@ -72,7 +72,9 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
         raise InputError(cfg_path, f"run settings cannot be read ({type(e).__name__}: {e})",
                          "restore the file or run without --resume") from None
     try:
-        state = load_torch_file(ckpt_path, "start the run again without --resume", map_location=cfg.device)
+        # onto the CPU whatever device wrote it: the trainer moves each part to the device the
+        # run goes on with (--device may change on resume)
+        state = load_torch_file(ckpt_path, "start the run again without --resume", map_location="cpu")
         if not isinstance(state, dict) or "trainer" not in state:
             raise ValueError("not a splatk checkpoint")
     except InputError:

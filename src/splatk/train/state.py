@@ -74,10 +74,18 @@ def load_trainer_state(tr, sd: dict) -> None:
     tr.opt.load_state_dict(copy.deepcopy(sd["opt"]))
     if tr.net_opt is not None and sd.get("net_opt") is not None:
         tr.net_opt.load_state_dict(_regrouped(copy.deepcopy(sd["net_opt"]), tr.net_opt))
-    # generator states are CPU byte tensors whatever the device (a checkpoint loaded with
-    # map_location="cuda" moves them there)
+    # generator states are CPU byte tensors whatever the device
     tr.view_gen.set_state(sd["view_gen"].cpu())
-    tr.mcmc_gen.set_state(sd["mcmc_gen"].cpu())
+    mcmc_state = sd["mcmc_gen"].cpu()
+    if mcmc_state.numel() == tr.mcmc_gen.get_state().numel():
+        tr.mcmc_gen.set_state(mcmc_state)
+    else:
+        # the run moved between a CPU and a GPU, whose generators keep states of other kinds:
+        # MCMC's draws go on from a stream that the run's seed and this iteration fix
+        tr.mcmc_gen.manual_seed(tr.cfg.seed + 1 + tr.it)
+        tr.events.append({"iteration": tr.it, "event": "device_changed", "message":
+                          f"iteration {tr.it}: the run went on on {tr.device.type}, which keeps another kind "
+                          "of random state: MCMC's random draws go on from a new stream (seed + iteration)"})
     tr.view_queue = list(sd["view_queue"])
     torch.set_rng_state(sd["torch_rng"].cpu())
     if sd.get("cuda_rng") is not None and tr.device.type == "cuda":
