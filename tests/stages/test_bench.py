@@ -113,20 +113,26 @@ def test_partial_run_resumes_from_checkpoint(scene, tmp_path, monkeypatch):
     assert res.rows[0]["iterations"] == 40
 
 
+def _stopped_grid(scene, cfg: BenchConfig, out: Path, polls: int) -> BenchStopped:
+    """Run the grid until its stop request has been polled ``polls`` times; the BenchStopped."""
+    count = {"n": 0}
+
+    def stop_later():
+        count["n"] += 1
+        return count["n"] > polls
+
+    with pytest.raises(BenchStopped) as stopped:
+        run_bench([scene], cfg, out, should_stop=stop_later)
+    return stopped.value
+
+
 def test_stop_request_keeps_the_checkpoint_and_writes_no_result(scene, tmp_path):
     """A stop request (SIGTERM, Ctrl-C) mid-fit ends the bench without evaluating the unfinished
     run; the next call resumes that fit and finishes the grid."""
     cfg = BenchConfig(methods=[{"kernel": "gaussian"}, {"kernel": "beta"}], defaults=BASE, metrics=("psnr",))
-    polls = {"n": 0}
-
-    def stop_after_some_steps():
-        polls["n"] += 1
-        return polls["n"] > 15
-
-    with pytest.raises(BenchStopped) as stopped:
-        run_bench([scene], cfg, tmp_path, should_stop=stop_after_some_steps)
+    stopped = _stopped_grid(scene, cfg, tmp_path, polls=15)
     run = tmp_path / "runs" / "demo" / method_id(cfg.methods[0])
-    assert stopped.value.run == run and (run / "checkpoints" / "last.pt").is_file()
+    assert stopped.run == run and (run / "checkpoints" / "last.pt").is_file()
     assert 0 < json.loads((run / "fit.json").read_text())["iterations"] < BASE["iters"]
     assert not list((tmp_path / "results").glob("*.json"))  # neither run counts as done
     events = []
@@ -141,16 +147,9 @@ def test_a_grid_stopped_with_one_placement_goes_on_with_another(scene, tmp_path)
     finished result made with other values is reused, not refused as other settings."""
     methods = [{"kernel": "gaussian"}, {"kernel": "beta"}]
     first = BenchConfig(methods=methods, defaults=BASE, metrics=("psnr",))
-    polls = {"n": 0}
-
-    def stop_in_the_second_run():
-        polls["n"] += 1
-        return polls["n"] > 60
-
-    with pytest.raises(BenchStopped) as stopped:
-        run_bench([scene], first, tmp_path, should_stop=stop_in_the_second_run)
-    assert stopped.value.run == tmp_path / "runs" / "demo" / method_id(methods[1])
-    done_before = json.loads((stopped.value.run / "fit.json").read_text())["iterations"]
+    stopped = _stopped_grid(scene, first, tmp_path, polls=60)  # in the second run
+    assert stopped.run == tmp_path / "runs" / "demo" / method_id(methods[1])
+    done_before = json.loads((stopped.run / "fit.json").read_text())["iterations"]
     assert 0 < done_before < BASE["iters"]
     elsewhere = BenchConfig(methods=methods, defaults={**BASE, "threads": 2, "backend": "auto"},
                             metrics=("psnr",))
@@ -158,7 +157,7 @@ def test_a_grid_stopped_with_one_placement_goes_on_with_another(scene, tmp_path)
     res = run_bench([scene], elsewhere, tmp_path, on_event=lambda kind, info: events.append((kind, info["method"])))
     assert events[:2] == [("reuse", method_id(methods[0])), ("resume", method_id(methods[1]))]
     assert [r["iterations"] for r in res.rows] == [BASE["iters"]] * 2
-    doc = yaml.safe_load((stopped.value.run / "config.yaml").read_text())
+    doc = yaml.safe_load((stopped.run / "config.yaml").read_text())
     assert doc["settings"]["threads"] == 2 and doc["settings"]["backend"] == "auto"
     # went on from the checkpoint, not from iteration 0
     assert doc["sources"]["threads"] == f"changed on resume at iteration {done_before}: 2"
