@@ -131,6 +131,7 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
     k = settings["kernel_options"].get("k", 2)
     return {"scene": scene, "kernel": kernel, "set": set_of(scene),
             "device": settings["device"],
+            "cpu": (fit.get("machine") or {}).get("cpu"),  # None for a run made before fit.json named it
             "test_psnr": json.loads(result.read_text())["mean"]["psnr"],
             "train_psnr": json.loads(train.read_text())["mean"]["psnr"], "primitives": fit["num_primitives"],
             "k": k if kernel.startswith("learned") else None,

@@ -157,6 +157,7 @@ def test_resume_takes_a_checkpoint_whose_mcmc_generator_is_another_devices(tmp_p
     assert summary["iterations"] == 200
     moved = [e for e in summary["events"] if e["event"] == "device_changed"]
     assert [e["iteration"] for e in moved] == [stopped_at]
+    assert summary["machine"]["cpu"] and summary["machine"]["logical_cpus"] >= 1  # which CPU trained it
 
 
 @cuda

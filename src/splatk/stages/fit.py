@@ -25,6 +25,7 @@ from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
 from ..kernels.auto_k import resolve_auto_k
+from ..machine import machine_info
 from ..models.init import initial_points
 from ..models.io import model_spec
 from ..models.planar import PlanarModel
@@ -453,6 +454,9 @@ class FitRun:
             "view_stride": cfg.view_stride,
             "train_views": len(trainer.scene.train),
             "scene_warnings": list(scene.warnings),  # fields the loader read past (fit prints them too)
+            # the CPU's vector units change float rounding, and a long run's result with it (the same
+            # 30k cell ended 2.1 dB apart on two CPUs; docs/results.md): a figure names its machine
+            "machine": machine_info(),
         }
         if auto is not None:
             summary["auto_budget"] = auto.report(self.holdout)
