@@ -57,15 +57,19 @@ def prims(run: Path) -> dict:
 
 def assert_same_training(a: dict, b: dict) -> None:
     """Float tolerance: Adam (eps 1e-15) turns rounding-level gradient differences of near-still
-    primitives into steps of up to one learning rate, so a few entries differ by ~1e-3 (on an AVX2
-    machine 4 % of the planar run's log-scales, which moved its mean difference to 1.2e-4); the
-    median difference (1e-6 and below there) shows that the runs are the same run: a gradient that
-    differs between them moves most entries, not a few."""
+    primitives into steps of up to one learning rate, and 2DGS's geometry terms carry them on, so
+    some entries drift apart: in the planar run with those terms, 4 % of the log-scales by ~1e-3
+    on an AMD EPYC (AVX2), and on an Intel Xeon (AVX-512) 3.9 % by more than 5e-3, at most 0.062.
+    The median difference (7.6e-6 there, 1e-6 and below on the EPYC) and the share of entries
+    that moved show that the runs are the same run: a gradient that differs between them (a wrong
+    average, a missing all-reduce) moves most entries, not a few."""
     assert a["means"].shape == b["means"].shape
     for name in b:
         diff = (a[name] - b[name]).abs()
-        assert torch.allclose(a[name], b[name], rtol=1e-3, atol=5e-3), (name, float(diff.max()))
-        assert float(diff.median()) < 1e-5, (name, float(diff.median()))
+        close = torch.isclose(a[name], b[name], rtol=1e-3, atol=5e-3)
+        assert float(close.float().mean()) > 0.9, (name, float(close.float().mean()), float(diff.max()))
+        assert float(diff.max()) < 0.25, (name, float(diff.max()))
+        assert float(diff.median()) < 1e-4, (name, float(diff.median()))
 
 
 #: planar surfels with 2DGS's geometry terms, on after iteration 23 and 10 of 100 (7000 and 3000 of 30k)
@@ -106,7 +110,9 @@ def test_two_processes_train_the_one_process_batch(scene, tmp_path, strategy, it
         last = [json.loads((runs[n] / "train_log.jsonl").read_text().splitlines()[-1]) for n in ("ddp", "one")]
         assert last[0]["it"] == last[1]["it"] == 100
         for term in ("normal_loss", "distortion_loss"):
-            assert last[0][term] == pytest.approx(last[1][term], rel=1e-3), term
+            # 5 %: the few entries that drift apart (assert_same_training) moved the normal term by
+            # 1.7 % on an AVX-512 CPU; the check is against logging one rank's view, not the batch
+            assert last[0][term] == pytest.approx(last[1][term], rel=5e-2), term
 
 
 def test_a_one_process_checkpoint_resumes_on_two_processes(scene, tmp_path):
