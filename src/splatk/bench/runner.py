@@ -31,7 +31,7 @@ from ..data import detect_format, load_scene
 from ..errors import InputError
 from ..machine import machine_info
 from ..stages.evaluate import run_eval
-from ..stages.fit import run_fit
+from ..stages.fit import RESUME_CHANGEABLE, run_fit
 from ..stages.fit_config import FitConfig
 from .methods import PRETRAIN_KEYS, fit_config_for, method_id, pretraining
 
@@ -96,10 +96,11 @@ def _diff(a: dict, b: dict) -> str:
     return ", ".join(f"{k}: {a.get(k)!r} there, {b.get(k)!r} now" for k in keys) or "?"
 
 
-#: settings that say where and how a run executes, not what it computes (the same names a
-#: `splatk fit --resume` may change): a result or a stopped run made with other values is the
-#: same cell, and a stopped one goes on with the values given now
-PLACEMENT_SETTINGS = ("threads", "backend", "device", "nproc", "checkpoint_every")
+#: settings that say where and how a run executes, not what it computes: those a `splatk fit
+#: --resume` may change, less the run's length (a cell's iterations are part of what it is). A
+#: result or a stopped run made with other values is the same cell; a stopped one goes on with
+#: the values given now
+PLACEMENT_SETTINGS = tuple(k for k in RESUME_CHANGEABLE if k not in ("iters", "time_budget"))
 
 
 def _without_placement(settings):

@@ -455,7 +455,7 @@ class FitRun:
             "train_views": len(trainer.scene.train),
             "scene_warnings": list(scene.warnings),  # fields the loader read past (fit prints them too)
             # the CPU's vector units change float rounding, and a long run's result with it (the same
-            # 30k cell ended 2.1 dB apart on two CPUs; docs/results.md): a figure names its machine
+            # 30k cell on two CPUs: docs/results.md, stability), so a figure names its machine
             "machine": machine_info(),
         }
         if auto is not None:

@@ -84,8 +84,8 @@ def load_trainer_state(tr, sd: dict) -> None:
         # MCMC's draws go on from a stream that the run's seed and this iteration fix
         tr.mcmc_gen.manual_seed(tr.cfg.seed + 1 + tr.it)
         tr.events.append({"iteration": tr.it, "event": "device_changed", "message":
-                          f"iteration {tr.it}: the run went on on {tr.device.type}, which keeps another kind "
-                          "of random state: MCMC's random draws go on from a new stream (seed + iteration)"})
+                          f"iteration {tr.it}: the run continues on {tr.device.type}, whose generator keeps "
+                          "another kind of state: MCMC's random draws go on from a new stream (seed + iteration)"})
     tr.view_queue = list(sd["view_queue"])
     torch.set_rng_state(sd["torch_rng"].cpu())
     if sd.get("cuda_rng") is not None and tr.device.type == "cuda":
