@@ -49,10 +49,9 @@ def bilinear(table: torch.Tensor, idx: torch.Tensor, uv: torch.Tensor) -> torch.
 
 
 def planar_in_front(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
-                    viewmat: torch.Tensor, near_plane: float = NEAR) -> torch.Tensor:
-    """[N] bool: the splat's centre lies at camera depth > ``near_plane`` (the model's near clip
-    plane, as 2DGS culls by the centre) and the four corners of its 3-sigma square at depth >
-    ``NEAR``. Then the whole disk is in front of the camera and its image is an ellipse.
+                    viewmat: torch.Tensor) -> torch.Tensor:
+    """[N] bool: the splat's centre and the four corners of its 3-sigma square lie at camera
+    depth > ``NEAR``. Then the whole disk is in front of the camera and its image is an ellipse.
 
     The corners' depths are ``z + 3 (+-a s_u +- b s_v)`` with ``a``, ``b`` the camera-z
     components of the disk's axes, so the nearest is ``z - 3 (|a| s_u + |b| s_v)``. Disks that
@@ -66,4 +65,4 @@ def planar_in_front(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tens
         depth = means @ rz + tz
         axes_z = quats_to_rotmats(quats)[:, :, :2].mT @ rz  # [N, 2]: camera z of t_u, t_v
         nearest = depth - 3.0 * (axes_z.abs() * scales).sum(1)
-        return (depth > max(near_plane, NEAR)) & (nearest > NEAR)
+        return (depth > NEAR) & (nearest > NEAR)

@@ -9,25 +9,13 @@ from torch import nn
 
 from ..colors import ColorModel
 
-#: The near clip plane as a fraction of the scene's extent (``Scene.extent``): primitives whose
-#: centre is nearer to the camera than this are not drawn. 0.04 x extent is 3DGS's fixed 0.2
-#: world units on its NeRF-synthetic scenes (extent 4.9), scaled with the scene so that a
-#: capture of another size culls at the same relative distance. Splatting's projection is a
-#: first-order approximation that fails right in front of the camera, where a primitive no
-#: train view saw from so near can cover a whole novel view (decision 0110).
-NEAR_PLANE_OF_EXTENT = 0.04
-#: the near plane of models made before it followed the scene (the projection's own floor)
-NEAR_PLANE_BEFORE_RECORDED = 0.01
 
 class PrimitiveModel(nn.Module):
     """Per-primitive tensors (first dim N) in ``self.prims``: means [N, 3], log_scales [N, S],
     quats [N, 4] (w, x, y, z), opacity_logits [N], plus the colour model's and the kernel's."""
 
-    def __init__(self, kernel: nn.Module, color: ColorModel, prims: dict[str, torch.Tensor],
-                 near_plane: float = NEAR_PLANE_BEFORE_RECORDED):
+    def __init__(self, kernel: nn.Module, color: ColorModel, prims: dict[str, torch.Tensor]):
         super().__init__()
-        #: camera depth in world units below which a primitive is not drawn (saved with the model)
-        self.near_plane = float(near_plane)
         self.kernel = kernel
         self.color = color
         self.prims = nn.ParameterDict({k: nn.Parameter(v.contiguous()) for k, v in prims.items()})

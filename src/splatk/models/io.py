@@ -11,7 +11,6 @@ import torch
 from ..colors import make_color_model
 from ..kernels import make_kernel
 from ..torch_files import load_torch_file
-from .base import NEAR_PLANE_BEFORE_RECORDED
 from .planar import PlanarModel
 from .volumetric import SplatModel
 
@@ -62,7 +61,6 @@ def model_spec(model: SplatModel | PlanarModel, kernel_options: dict, color_opti
         "kernel_options": options,
         "color": model.color.name,
         "color_options": dict(color_options),
-        "near_plane": model.near_plane,
     }
 
 
@@ -95,8 +93,6 @@ def build_model(spec: dict, prims: dict, kernel_state: dict | None = None) -> Sp
         model = SplatModel(make_kernel(spec["kernel"], **options), color, prims)
     else:
         raise ValueError(f"unknown primitive type {primitive!r} in model spec")
-    # a file from before the near plane followed the scene: drawn as it was made
-    model.near_plane = float(spec.get("near_plane", NEAR_PLANE_BEFORE_RECORDED))
     kernel = model.kernel
     if kernel_state:
         kernel.load_state_dict(kernel_state)

@@ -16,7 +16,7 @@ from ..functional.planar import planar_in_front
 from ..functional.projection import quats_to_rotmats
 from ..functional.surfel_depth import GEOMETRY_CHANNELS, surfel_geometry_channels
 from ..kernels import Kernel, ViewContext, make_kernel
-from .base import NEAR_PLANE_BEFORE_RECORDED, PrimitiveModel
+from .base import PrimitiveModel
 from .volumetric import RenderResult, knn_mean_sq_dist
 
 
@@ -41,7 +41,6 @@ class PlanarModel(PrimitiveModel):
         scale_factor: float = 1.0,
         kernel_options: dict | None = None,
         color_options: dict | None = None,
-        near_plane: float = NEAR_PLANE_BEFORE_RECORDED,
     ) -> "PlanarModel":
         """As :meth:`SplatModel.from_points` (neighbour-spacing scales, opacity 0.5), except the
         rotations: random (from torch's global RNG), as 2DGS does, since identity rotations
@@ -60,7 +59,7 @@ class PlanarModel(PrimitiveModel):
         }
         prims.update(color.init_primitive_params(colors.float().clamp(0, 1)))
         prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
-        return cls(kernel, color, prims, near_plane)
+        return cls(kernel, color, prims)
 
     # ---- accessors (the rest: PrimitiveModel; scales are the [N, 2] in-plane sigmas) ------
     @property
@@ -83,7 +82,7 @@ class PlanarModel(PrimitiveModel):
         viewmat = camera.world_to_cam.to(dev)
         K = camera.K.to(dev)
         idx = torch.nonzero(planar_in_front(self.prims["means"], self.prims["quats"], self.scales,
-                                            viewmat, self.near_plane)).flatten()
+                                            viewmat)).flatten()
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}
         scales = torch.exp(vis["log_scales"])
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]

@@ -8,7 +8,7 @@ import torch
 from ..backends import Backend, RasterOutput
 from ..colors import ColorModel, make_color_model
 from ..kernels import Kernel, ViewContext, make_kernel
-from .base import NEAR_PLANE_BEFORE_RECORDED, PrimitiveModel
+from .base import PrimitiveModel
 
 #: geometric per-primitive parameters every volumetric model has (raw, pre-activation)
 GEOMETRY_PARAMS = ("means", "log_scales", "quats", "opacity_logits")
@@ -34,7 +34,6 @@ class SplatModel(PrimitiveModel):
         scale_factor: float = 1.0,
         kernel_options: dict | None = None,
         color_options: dict | None = None,
-        near_plane: float = NEAR_PLANE_BEFORE_RECORDED,
     ) -> "SplatModel":
         """Init as DBS does: scale = sqrt(mean squared distance to the 3 nearest neighbours),
         identity rotations, opacity 0.5, base colour from the points."""
@@ -52,7 +51,7 @@ class SplatModel(PrimitiveModel):
         }
         prims.update(color.init_primitive_params(colors.float().clamp(0, 1)))
         prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
-        return cls(kernel, color, prims, near_plane)
+        return cls(kernel, color, prims)
 
     # ---- rendering ----------------------------------------------------------------------
     def render(
@@ -74,7 +73,7 @@ class SplatModel(PrimitiveModel):
         proj = backend.project(self.prims["means"], self.prims["quats"], scales, viewmat, K,
                                camera.width, camera.height, support_sigmas=self.kernel.support_sigmas,
                                want_view=self.kernel.needs_view)
-        idx = torch.nonzero(proj.visible & (proj.depths > self.near_plane)).flatten()
+        idx = torch.nonzero(proj.visible).flatten()
         # index_select: its backward is index_add_, several times faster on the CPU than the
         # accumulating index_put_ that v[idx] records
         vis = {k: v.index_select(0, idx) for k, v in self.prims.items()}

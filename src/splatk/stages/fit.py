@@ -26,7 +26,6 @@ from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
 from ..kernels.auto_k import resolve_auto_k
 from ..machine import machine_info
-from ..models.base import NEAR_PLANE_OF_EXTENT
 from ..models.init import initial_points
 from ..models.io import model_spec
 from ..models.planar import PlanarModel
@@ -121,8 +120,7 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
         scale_factor = 1.0
     model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
     return model_class.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color, scale_factor=scale_factor,
-                                  kernel_options=cfg.kernel_options, color_options=_color_options(cfg),
-                                  near_plane=NEAR_PLANE_OF_EXTENT * scene.extent)
+                                  kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
 
 
 def run_fit(
