@@ -55,13 +55,13 @@ def centres(model, backend, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return proj.visible, centre, proj.depths
 
 
-def render_without(model, backend, cam, drop: torch.Tensor):
-    """The view rendered on black with the primitives in ``drop`` left out."""
+def render_without(model, backend, cam, drop: torch.Tensor, background: torch.Tensor | None = None):
+    """The view rendered on ``background`` (default black) with the primitives in ``drop`` left out."""
     logits = model.prims["opacity_logits"]
     saved = logits.data.clone()
     logits.data[drop] = -30.0
     try:
-        return model.render(cam, torch.zeros(3), backend=backend)
+        return model.render(cam, torch.zeros(3) if background is None else background, backend=backend)
     finally:
         logits.data.copy_(saved)
 

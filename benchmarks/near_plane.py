@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import torch
@@ -24,6 +25,9 @@ from splatk import backends
 from splatk.data import load_scene
 from splatk.metrics import psnr
 from splatk.models.io import load_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from near_camera_veils import render_without  # noqa: E402
 
 #: 3DGS's near plane (0.2) over the NeRF-synthetic extent (lego: 4.89)
 FRACTION = 0.04
@@ -40,14 +44,9 @@ def nearer_than(model, backend, cam, near_plane: float) -> torch.Tensor:
 @torch.no_grad()
 def view_psnr(model, backend, cam, background, near_plane: float | None) -> float:
     """The view's PSNR as fitted (``near_plane`` None) or with the primitives nearer left out."""
-    logits = model.prims["opacity_logits"]
-    saved = logits.data.clone()
-    if near_plane is not None:
-        logits.data[nearer_than(model, backend, cam, near_plane)] = -30.0
-    try:
-        image = model.render(cam, background, backend=backend).image.clamp(0, 1)
-    finally:
-        logits.data.copy_(saved)
+    drop = (torch.zeros(model.num_primitives, dtype=torch.bool) if near_plane is None
+            else nearer_than(model, backend, cam, near_plane))
+    image = render_without(model, backend, cam, drop, background).image.clamp(0, 1)
     return float(psnr(image, cam.image_float()))
 
 
