@@ -115,6 +115,20 @@ def test_adc_strategy_trains_without_the_mcmc_regularisers_unless_given():
     assert given.train.scale_reg == 0.02 and given.train.opacity_reg == 0.0
 
 
+def test_a_given_budget_caps_adc_and_none_leaves_it_to_memory():
+    """An equal-memory comparison (paper Tab. 2) must hold ADC to the budget it was given."""
+    from splatk.stages.fit_config import bytes_per_primitive, fit_config_from_options, max_budget
+    free, _ = fit_config_from_options({"iters": 100, "strategy": "adc"})
+    assert free.train.adc.cap_max == max_budget(free) > free.train.budget
+    counted, _ = fit_config_from_options({"iters": 100, "strategy": "adc", "budget": 5000})
+    assert counted.train.adc.cap_max == 5000
+    sized, _ = fit_config_from_options({"iters": 100, "strategy": "adc", "budget_bytes": "1MB"})
+    per_prim, nets = bytes_per_primitive(sized)
+    assert sized.train.adc.cap_max == sized.train.budget == (2**20 - nets) // per_prim
+    told, _ = fit_config_from_options({"iters": 100, "strategy": "adc", "budget": 5000, "adc": {"cap_max": 7000}})
+    assert told.train.adc.cap_max == 7000
+
+
 def test_an_opacity_reset_is_not_rolled_back_as_a_divergence():
     """3DGS's opacity reset raises the loss on purpose; the guard judges the loss afresh after
     it instead of rolling the reset back and halving the step size."""

@@ -193,9 +193,6 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         for key in ("opacity_reg", "scale_reg"):
             if key not in given:
                 setattr(cfg.train, key, 0.0)
-    if cfg.train.strategy == "adc" and cfg.train.adc.cap_max is None:
-        # 3DGS has no cap; this one only keeps a run inside the machine's memory
-        cfg.train.adc.cap_max = max_budget(cfg)
     cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
     if budget_bytes is not None:
         try:
@@ -227,6 +224,12 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
             notes["budget"] = {"auto": True, "reference_budget": cfg.train.budget}
         else:
             cfg.train.budget = _read_count("budget", budget, budget, sources)
+    if cfg.train.strategy == "adc" and cfg.train.adc.cap_max is None:
+        # 3DGS has no cap. A budget the user gives caps clones and splits, so that an
+        # equal-memory comparison (paper Tab. 2) holds ADC to it too; without one, the cap only
+        # keeps the run inside this machine's memory
+        given_budget = budget_bytes is not None or (budget is not None and cfg.auto_budget is None)
+        cfg.train.adc.cap_max = cfg.train.budget if given_budget else max_budget(cfg)
     check_fit_config(cfg, sources)
     if base is None:
         fraction = run_fraction(cfg)
