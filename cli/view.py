@@ -89,11 +89,13 @@ def command(run, port, host, camera, max_size, fps, backend, device, scene):
     server.initial_camera.fov = start["fov_y"]
     panels: dict[int, dict] = {}
     server.on_client_connect(lambda client: panels.__setitem__(client.client_id, add_controls(client, view)))
-    Console(stderr=True).print(f"splatk view: http://{host}:{server.get_port()} (Ctrl-C to stop)",
-                               markup=False, highlight=False)
     planners: dict[int, FramePlanner] = {}
     old_term = signal.signal(signal.SIGTERM, _stop)
     try:
+        # the address is printed inside the try: the page answers from viser's thread already, so
+        # a Ctrl-C the moment the address shows must stop the viewer as a later one does
+        Console(stderr=True).print(f"splatk view: http://{host}:{server.get_port()} (Ctrl-C to stop)",
+                                   markup=False, highlight=False)
         while True:
             # one render at a time keeps the CPU for it; each browser gets a frame when its camera
             # moved, and a full-size one once it rests
