@@ -248,17 +248,16 @@ def test_kernel_table_measures_learned_against_the_best_analytic_kernel(tmp_path
             "b": {"3dgs-adc": 20.0, "gaussian": 21.0, "beta": 22.0, "student_t": 21.5, "learned-k2": 22.1,
                   "learned-auto": 22.6},
             "c": {"gaussian": 20.0, "learned-k2": 23.0}}
+    # each row's method as `splatk bench` records it
+    specs = {"3dgs-adc": {"kernel": "gaussian", "strategy": "adc"}, "gaussian": {"kernel": "gaussian"},
+             "beta": {"kernel": "beta"}, "student_t": {"kernel": "student_t"},
+             "learned-k2": {"kernel": "learned", "k": 2}, "learned-k8": {"kernel": "learned", "k": 8},
+             "learned-auto": {"kernel": "learned", "k": "auto"}}
     for scene, cells in grid.items():
         for name, value in cells.items():
-            kernel = name.split("-")[0] if name.startswith("learned") else name
-            spec = {"kernel": "gaussian" if kernel == "3dgs" else kernel, "budget_bytes": "1MB"}
-            if name == "3dgs-adc":
-                spec["strategy"] = "adc"
-            if name.startswith("learned"):
-                spec["k"] = name.split("-")[1].lstrip("k")
-                spec["k"] = spec["k"] if spec["k"] == "auto" else int(spec["k"])
             row = {"status": "ok", "scene": scene, "psnr": value, "ssim": 0.9, "num_primitives": 100,
-                   "method_spec": spec, "loss_rollbacks": 1 if name == "3dgs-adc" else 0,
+                   "method_spec": {**specs[name], "budget_bytes": "1MB"},
+                   "loss_rollbacks": 1 if name == "3dgs-adc" else 0,
                    "config": {"kernel_options": {"k": 4}}}
             (results / f"{scene}__{name}.json").write_text(json.dumps(row))
     out = tmp_path / "table.json"
