@@ -2,10 +2,10 @@
 that `--strategy adc` trains as 3DGS does.
 
     python benchmarks/adc_check.py OUT [--scene lego] [--downscale 4] [--iters 30000]
-        [--arms adc,adc-reg,adc-opacity-reg,adc-scale-reg,mcmc]
+        [--arms adc,adc-reg,adc-opacity-reg,adc-scale-reg,mcmc] [--device cuda]
 
 Arm ``adc`` is ``splatk fit SCENE --out OUT/runs/adc --strategy adc --iters N --downscale D
---threads 1``. Arm ``adc-reg`` is the same with MCMC's opacity and scale regularisers
+--threads 1`` (with ``--device cuda``: on the GPU, cuda backend). Arm ``adc-reg`` is the same with MCMC's opacity and scale regularisers
 (``--opacity-reg 0.01 --scale-reg 0.01``, which 3DGS does not have): where ADC falls behind MCMC,
 it tells the density control from the regularisers. Arms ``adc-opacity-reg`` and ``adc-scale-reg`` add
 one of the two each, to tell which of them closes the gap. Arm ``mcmc`` is the fit with the default
@@ -51,15 +51,16 @@ def fit_and_eval(scene: Path, run: Path, flags: list[str], args) -> dict:
         if (run / "checkpoints" / "last.pt").exists():
             fit = ["--resume"]  # an arm stopped part-way goes on from its checkpoint
         else:
-            fit = [str(scene), "--overwrite", "--iters", str(args.iters), "--downscale", str(args.downscale), *flags]
+            fit = [str(scene), "--overwrite", "--iters", str(args.iters), "--downscale", str(args.downscale), *flags,
+                   "--device", args.device]
         subprocess.run(["splatk", "fit", *fit, "--out", str(run), "--threads", "1", "-q"], check=True, env=env)
-        evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr,ssim", "--json"], check=True,
-                                   env=env, capture_output=True, text=True)
+        evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr,ssim", "--json",
+                                    "--device", args.device], check=True, env=env, capture_output=True, text=True)
         result.write_text(evaluated.stdout)
     train = run / "metrics_train.json"
     if not train.exists():
-        subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr"], check=True, env=env,
-                       capture_output=True)
+        subprocess.run(["splatk", "eval", str(run), "--split", "train", "--metrics", "psnr", "--device", args.device],
+                       check=True, env=env, capture_output=True)
     mean = json.loads(result.read_text())["mean"]
     return {**mean, "train_psnr": json.loads(train.read_text())["mean"]["psnr"]}
 
@@ -79,6 +80,7 @@ def main() -> None:
     ap.add_argument("--scene", default="lego")
     ap.add_argument("--downscale", type=float, default=4.0)
     ap.add_argument("--iters", type=int, default=30000)
+    ap.add_argument("--device", default="cpu", help="torch device the arms fit and are evaluated on (cpu, cuda)")
     ap.add_argument("--arms", default="adc,mcmc", help=f"comma-separated: {', '.join(ADC_ARMS)}, mcmc")
     args = ap.parse_args()
     scene = Path(args.scene) if Path(args.scene).is_dir() else DATA / args.scene
@@ -114,7 +116,8 @@ def main() -> None:
         print(f"MCMC rollbacks: {len(mcmc['rollbacks'])}")
     out = {"scene": args.scene, "iters": args.iters, "downscale": args.downscale, "results": rows,
            **{arm: history.get(arm) for arm in ADC_ARMS}, "mcmc": mcmc,
-           "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__}}
+           "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
+                       "device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu"}}
     (args.out / "adc_check.json").write_text(json.dumps(out, indent=1))
 
 
