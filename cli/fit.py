@@ -41,7 +41,7 @@ from .progress import DEFAULT_LOG_EVERY, stderr_console, training_progress
                    "(Grendel-GS's rule). [default: 1]")
 @click.option("--strategy", type=click.Choice(sorted(STRATEGIES)),
               help="Density control: mcmc (DBS / 3DGS-MCMC: relocate, grow to --budget) or adc (3DGS: clone, "
-                   "split, prune, opacity reset until 15k of 30k iterations; grows without a cap unless --budget or --budget-bytes is given; no opacity or scale regulariser unless given). [default: mcmc]")
+                   "split, prune, opacity reset until 15k of 30k iterations; grows without a cap unless --budget or --budget-bytes is given; no opacity or scale regulariser unless given; starts as 3DGS: opacity 0.1, scales at the neighbour spacing, random init 100k points). [default: mcmc]")
 @click.option("--budget", help="Maximum number of primitives, or `auto` / `auto:N`: try N/2 (N: 100000) and double "
               "while a short run (a quarter of the iterations) at the doubled budget beats the previous one by "
               "> 0.5 dB on held-out train views, then train a fresh model at the chosen budget on every train view "

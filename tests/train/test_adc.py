@@ -115,6 +115,39 @@ def test_adc_strategy_trains_without_the_mcmc_regularisers_unless_given():
     assert given.train.scale_reg == 0.02 and given.train.opacity_reg == 0.0
 
 
+def test_adc_starts_as_3dgs_unless_given():
+    """3DGS starts at opacity 0.1 with scales at the full neighbour spacing and 100k random
+    points; DBS / 3DGS-MCMC at 0.5, a tenth of the spacing and a quarter of the budget."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from scenes import synthetic_scene
+
+    from splatk.models.init import initial_points
+    from splatk.stages.fit import build_model
+    from splatk.stages.fit_config import fit_config_from_options
+    from splatk.models.volumetric import knn_mean_sq_dist
+
+    scene = synthetic_scene(num_views=4)
+    models = {}
+    for name, extra in (("mcmc", {}), ("adc", {"strategy": "adc"}),
+                        ("adc, given", {"strategy": "adc", "init_opacity": 0.3, "random_points": 500})):
+        cfg, _ = fit_config_from_options({"iters": 100, "budget": 2000, "init": "random", **extra})
+        models[name] = (cfg, build_model(scene, cfg))
+    for name, opacity, count, spacing in (("mcmc", 0.5, 500, 0.1), ("adc", 0.1, 2000, 1.0), ("adc, given", 0.3, 500, 1.0)):
+        cfg, model = models[name]
+        assert torch.allclose(model.opacities, torch.full_like(model.opacities, opacity)), name
+        assert model.num_primitives == count, name
+        pts, _ = initial_points(scene, "random", 2000, count, cfg.train.seed, cfg.train.random_extent)
+        expected = knn_mean_sq_dist(pts, k=3).clamp_min(1e-7).sqrt() * spacing
+        assert torch.allclose(model.scales[:, 0], expected, rtol=1e-4), name
+    assert models["adc"][0].train.random_points == 100_000  # the budget (2000) caps it
+    # 3DGS's Blender cube (+-1.3 on lego, 0.27 of its extent) against DBS's 0.5
+    spread = {name: (model.prims["means"].amax(0) - model.prims["means"].amin(0)).max().item() / 2 / scene.extent
+              for name, (_, model) in models.items()}
+    assert 0.2 < spread["adc"] <= 0.27 < 0.4 < spread["mcmc"] <= 0.5
+
+
 def test_a_given_budget_caps_adc_and_none_leaves_it_to_memory():
     """An equal-memory comparison (paper Tab. 2) must hold ADC to the budget it was given."""
     from splatk.stages.fit_config import bytes_per_primitive, fit_config_from_options, max_budget

@@ -104,7 +104,7 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
         # a quarter of the budget, for MCMC to grow (TrainConfig.random_points); --budget auto
         # starts full, since each of its stages compares models that filled their budgets
         n_random = budget if cfg.auto_budget is not None else max(1, budget // 4)
-    pts, cols = initial_points(scene, cfg.train.init, budget, n_random, cfg.train.seed)
+    pts, cols = initial_points(scene, cfg.train.init, budget, n_random, cfg.train.seed, cfg.train.random_extent)
     # Random points start 10x smaller than their neighbour spacing (3DGS-MCMC's init_scale 0.1):
     # at full spacing they blanket every view and take thousands of iterations to clear.
     # That 0.1 is for a 3-sigma Gaussian support; kernels whose support ends at 1 sigma (Beta,
@@ -120,7 +120,8 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
         scale_factor = 1.0
     model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
     return model_class.from_points(pts, cols, kernel=cfg.kernel, color=cfg.color, scale_factor=scale_factor,
-                                  kernel_options=cfg.kernel_options, color_options=_color_options(cfg))
+                                  init_opacity=cfg.train.init_opacity, kernel_options=cfg.kernel_options,
+                                  color_options=_color_options(cfg))
 
 
 def run_fit(

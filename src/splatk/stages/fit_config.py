@@ -95,6 +95,11 @@ class FitConfig:
 
 
 _FIT_FIELDS = {f.name for f in fields(FitConfig)} - {"train", "auto_budget"}
+#: the settings that differ under ``--strategy adc`` unless given: 3DGS's (its train.py and
+#: GaussianModel.create_from_pcd / the Blender loader's random init)
+ADC_START = {"opacity_reg": 0.0, "scale_reg": 0.0, "init_opacity": 0.1, "init_scale": 1.0, "random_points": 100_000,
+             "random_extent": 0.27}
+
 #: ADC's settings with flat names (the others, e.g. its min_opacity, only nested: ``adc: {...}``)
 ADC_FLAT = ("densify_from", "densify_until", "densify_every", "opacity_reset_every", "grad_threshold",
             "percent_dense")
@@ -189,10 +194,12 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
                   else cfg.train.adc if key in ADC_FLAT else cfg.train)
         setattr(target, key, value)
     if cfg.train.strategy == "adc" and base is None:
-        # 3DGS trains without DBS / 3DGS-MCMC's opacity and scale regularisers
-        for key in ("opacity_reg", "scale_reg"):
+        # 3DGS trains without DBS / 3DGS-MCMC's opacity and scale regularisers, and starts as
+        # 3DGS does: opacity 0.1, scales at the full neighbour spacing, 100k random points where
+        # there are no SfM points (decision 0015: with DBS's start ADC overfits lego by 5 dB)
+        for key, value in ADC_START.items():
             if key not in given:
-                setattr(cfg.train, key, 0.0)
+                setattr(cfg.train, key, value)
     cfg.train.backend, cfg.train.device = cfg.backend, cfg.device
     if budget_bytes is not None:
         try:
@@ -337,6 +344,8 @@ RULES = [
     ("train.init", "init", choice("auto", "sfm", "random")),
     ("train.random_points", "random_points", int_range(1)),
     ("train.init_scale", "init_scale", float_range(0.0)),
+    ("train.random_extent", "random_extent", float_range(0.0, None, lo_open=True)),
+    ("train.init_opacity", "init_opacity", float_range(0.0, 0.99, lo_open=True)),
     ("train.seed", "seed", int_range(0, 2**63 - 1)),
     ("train.lambda_dssim", "lambda_dssim", float_range(0.0, 1.0)),
     ("train.opacity_reg", "opacity_reg", float_range(0.0)),

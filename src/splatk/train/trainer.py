@@ -49,8 +49,15 @@ class TrainConfig:
     #: to the budget, and the growth is what carries primitives out of the init box to the
     #: background (decision 0011). 3DGS-MCMC starts at a tenth or less of its cap.
     random_points: int | None = None
+    #: random init: the points fill a cube of half-width random_extent x the scene extent
+    #: around the point the cameras look at (``--strategy adc``: 0.27, 3DGS's Blender cube of
+    #: +-1.3 on lego, whose extent is 4.89)
+    random_extent: float = 0.5
     #: initial scale = init_scale x neighbour spacing (0: 0.1 for random init, 1 for SfM as DBS)
     init_scale: float = 0.0
+    #: every primitive's opacity at the start (DBS / 3DGS-MCMC: 0.5; ``--strategy adc`` takes
+    #: 3DGS's 0.1, see splatk.stages.fit_config)
+    init_opacity: float = 0.5
     seed: int = 0
     lambda_dssim: float = 0.2
     opacity_reg: float = 0.01
