@@ -3,6 +3,7 @@ hand-computed case, with Adam's moments kept in step with every row edit."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -90,6 +91,24 @@ def test_opacity_reset_caps_at_one_percent_and_clears_moments():
     assert strategy.last_stats == {}
 
 
+def test_white_background_resets_once_more_at_densify_from():
+    """3DGS with --white_background resets the opacities at densify_from as well."""
+    from splatk.data.types import Scene
+    from splatk.train.trainer import TrainConfig
+
+    cams = [type("Cam", (), {"center": torch.tensor([float(i), 0.0, 0.0])})() for i in range(2)]
+    for background, random_background, resets in (((1.0, 1.0, 1.0), False, True), ((0.0, 0.0, 0.0), False, False),
+                                                  ((1.0, 1.0, 1.0), True, False)):
+        cfg = TrainConfig(strategy="adc", random_background=random_background)
+        strategy = ADCStrategy.from_train_config(cfg, Scene(root=Path("."), train=cams, test=[], background=background))
+        model, opt = four_primitives()
+        strategy.step(cfg.adc.densify_from, 0.02, model, opt)
+        assert bool(strategy.last_stats.get("opacity_reset")) == resets, background
+        assert (model.opacities.max().item() == pytest.approx(0.01, abs=1e-6)) == resets, background
+        strategy.step(cfg.adc.densify_from + 1, 0.02, model, opt)  # once only
+        assert "opacity_reset" not in strategy.last_stats
+
+
 def test_cap_keeps_clones_and_splits_within_the_budget():
     model, opt = four_primitives()
     strategy = ADCStrategy(ADCConfig(cap_max=5), EXTENT)
@@ -119,7 +138,6 @@ def test_adc_starts_as_3dgs_unless_given():
     """3DGS starts at opacity 0.1 with scales at the full neighbour spacing and 100k random
     points; DBS / 3DGS-MCMC at 0.5, a tenth of the spacing and a quarter of the budget."""
     import sys
-    from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from scenes import synthetic_scene
 
@@ -166,7 +184,6 @@ def test_an_opacity_reset_is_not_rolled_back_as_a_divergence():
     """3DGS's opacity reset raises the loss on purpose; the guard judges the loss afresh after
     it instead of rolling the reset back and halving the step size."""
     import sys
-    from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from scenes import synthetic_scene
 

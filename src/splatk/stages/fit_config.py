@@ -383,6 +383,7 @@ RULES = [
     ("train.adc.max_screen_size", "adc.max_screen_size", float_range(0.0, None, lo_open=True)),
     ("train.adc.max_world_size", "adc.max_world_size", float_range(0.0, None, lo_open=True)),
     ("train.adc.split_copies", "adc.split_copies", int_range(2, 16)),
+    ("train.adc.white_background_reset", "adc.white_background_reset", BOOL),
 ]
 
 

@@ -14,7 +14,8 @@ size) and its largest screen radius. Every ``densify_every`` iterations:
   those larger than ``max_screen_size`` pixels on screen or ``0.1`` x the extent in the world.
 
 Every ``opacity_reset_every`` iterations the opacities are capped at 0.01, so that primitives the
-views do not need fall below ``min_opacity`` and are pruned. Every row edit (copy, remove)
+views do not need fall below ``min_opacity`` and are pruned; on a white background once more at
+``densify_from`` (3DGS with ``--white_background``, as it trains Blender scenes). Every row edit (copy, remove)
 goes through :class:`~splatk.train.optim.PrimitiveAdam`, which keeps Adam's moments in step.
 """
 from __future__ import annotations
@@ -50,6 +51,9 @@ class ADCConfig:
     split_copies: int = 2
     #: a cap on the primitive count (None: none, as 3DGS); clones and splits are skipped beyond it
     cap_max: int | None = None
+    #: reset the opacities at ``densify_from`` too when training on a white background (3DGS's
+    #: rule for its --white_background runs: the random init's floaters are white-on-white there)
+    white_background_reset: bool = True
 
 
 def screen_radii(conics: torch.Tensor, support_sigmas: float, gaussian_sigmas: float = 3.0) -> torch.Tensor:
@@ -70,12 +74,14 @@ class ADCStrategy(Strategy):
     statistics = {"grad_sum": "sum", "seen": "sum", "max_radii": "max"}
 
     @classmethod
-    def from_train_config(cls, config, extent: float) -> "ADCStrategy":
-        return cls(config.adc, extent)
+    def from_train_config(cls, config, scene) -> "ADCStrategy":
+        white = not config.random_background and all(float(c) == 1.0 for c in scene.background)
+        return cls(config.adc, scene.extent, white_background=white)
 
-    def __init__(self, config: ADCConfig, extent: float):
+    def __init__(self, config: ADCConfig, extent: float, white_background: bool = False):
         self.cfg = config
         self.extent = float(extent)
+        self.white_background = white_background
         self.grad_sum: torch.Tensor | None = None
         self.seen: torch.Tensor | None = None
         self.max_radii: torch.Tensor | None = None
@@ -139,7 +145,8 @@ class ADCStrategy(Strategy):
             self._ensure(model.num_primitives, model.prims["means"].device)
             cloned, split, pruned = self.densify_and_prune(model, opt, it, generator)
             self.last_stats = {"cloned": cloned, "split": split, "pruned": pruned, "num": model.num_primitives}
-        if it < c.densify_until and it % c.opacity_reset_every == 0:
+        white_reset = c.white_background_reset and self.white_background and it == c.densify_from
+        if it < c.densify_until and (it % c.opacity_reset_every == 0 or white_reset):
             self.reset_opacity(model, opt)
             self.last_stats["opacity_reset"] = True
 

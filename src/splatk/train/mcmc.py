@@ -66,7 +66,7 @@ class MCMCStrategy(Strategy):
     name = "mcmc"
 
     @classmethod
-    def from_train_config(cls, config, extent: float) -> "MCMCStrategy":
+    def from_train_config(cls, config, scene) -> "MCMCStrategy":
         return cls(config.mcmc, cap_max=config.budget)
 
     def __init__(self, config: MCMCConfig, cap_max: int = 100_000):
