@@ -5,17 +5,17 @@ that `--strategy adc` trains as 3DGS does.
         [--arms adc,adc-reg,adc-opacity-reg,adc-scale-reg,mcmc] [--device cuda]
 
 Arm ``adc`` is ``splatk fit SCENE --out OUT/runs/adc --strategy adc --iters N --downscale D
---threads 1`` (with ``--device cuda``: on the GPU, cuda backend). Arm ``adc-reg`` is the same with MCMC's opacity and scale regularisers
-(``--opacity-reg 0.01 --scale-reg 0.01``, which 3DGS does not have): where ADC falls behind MCMC,
-it tells the density control from the regularisers. Arms ``adc-opacity-reg`` and ``adc-scale-reg`` add
+--threads 1`` (with ``--device cuda``: on the GPU, cuda backend). Arm ``adc-reg`` is the same
+with MCMC's opacity and scale regularisers (``--opacity-reg 0.01 --scale-reg 0.01``, which 3DGS
+does not have): where ADC falls behind MCMC, it tells the density control from the regularisers. Arms ``adc-opacity-reg`` and ``adc-scale-reg`` add
 one of the two each, to tell which of them closes the gap. Arm ``mcmc`` is the fit with the default
 strategy and ``--budget`` set to the ADC run's final primitive count (so it needs the ADC run).
 Each is followed by ``splatk eval --metrics psnr,ssim --json`` on the test views and ``--metrics
 psnr`` on the train views. A run folder that already has its ``eval.json`` is not run again; one
 stopped part-way (a checkpoint, no ``eval.json``) goes on with ``splatk fit --resume``. Prints the
 table, the ADC run's primitive count at each logged iteration, its opacity resets and rollbacks,
-and writes OUT/adc_check.json (the committed ones: benchmarks/results/adc_check_lego.json at 30k
-iterations, adc_check_lego_7k.json at 7k).
+and writes OUT/adc_check.json (the committed one: benchmarks/results/adc_check_lego_7k.json, 7k
+iterations at 1/4 resolution).
 """
 from __future__ import annotations
 
