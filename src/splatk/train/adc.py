@@ -15,8 +15,9 @@ size) and its largest screen radius. Every ``densify_every`` iterations:
 
 Every ``opacity_reset_every`` iterations the opacities are capped at 0.01, so that primitives the
 views do not need fall below ``min_opacity`` and are pruned; on a white background once more at
-``densify_from`` (3DGS with ``--white_background``, as it trains Blender scenes). Every row edit (copy, remove)
-goes through :class:`~splatk.train.optim.PrimitiveAdam`, which keeps Adam's moments in step.
+``densify_from`` (3DGS with ``--white_background``, as it trains Blender scenes). Every row edit
+(copy, remove) goes through :class:`~splatk.train.optim.PrimitiveAdam`, which keeps Adam's
+moments in step.
 """
 from __future__ import annotations
 
