@@ -2,7 +2,9 @@
 hand-computed case, with Adam's moments kept in step with every row edit."""
 from __future__ import annotations
 
+import dataclasses
 import math
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,6 +13,9 @@ import torch
 from splatk.models.volumetric import SplatModel
 from splatk.train.adc import ADCConfig, ADCStrategy, screen_radii
 from splatk.train.optim import PrimitiveAdam
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from scenes import synthetic_scene  # noqa: E402
 
 EXTENT = 10.0  # percent_dense 0.01 -> clone at largest scale <= 0.1, split above
 
@@ -93,14 +98,13 @@ def test_opacity_reset_caps_at_one_percent_and_clears_moments():
 
 def test_white_background_resets_once_more_at_densify_from():
     """3DGS with --white_background resets the opacities at densify_from as well."""
-    from splatk.data.types import Scene
     from splatk.train.trainer import TrainConfig
 
-    cams = [type("Cam", (), {"center": torch.tensor([float(i), 0.0, 0.0])})() for i in range(2)]
+    scene = synthetic_scene(num_views=4)
     for background, random_background, resets in (((1.0, 1.0, 1.0), False, True), ((0.0, 0.0, 0.0), False, False),
                                                   ((1.0, 1.0, 1.0), True, False)):
         cfg = TrainConfig(strategy="adc", random_background=random_background)
-        strategy = ADCStrategy.from_train_config(cfg, Scene(root=Path("."), train=cams, test=[], background=background))
+        strategy = ADCStrategy.from_train_config(cfg, dataclasses.replace(scene, background=background))
         model, opt = four_primitives()
         strategy.step(cfg.adc.densify_from, 0.02, model, opt)
         assert bool(strategy.last_stats.get("opacity_reset")) == resets, background
@@ -137,10 +141,6 @@ def test_adc_strategy_trains_without_the_mcmc_regularisers_unless_given():
 def test_adc_starts_as_3dgs_unless_given():
     """3DGS starts at opacity 0.1 with scales at the full neighbour spacing and 100k random
     points; DBS / 3DGS-MCMC at 0.5, a tenth of the spacing and a quarter of the budget."""
-    import sys
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from scenes import synthetic_scene
-
     from splatk.models.init import initial_points
     from splatk.models.volumetric import knn_mean_sq_dist
     from splatk.stages.fit import build_model
@@ -183,10 +183,6 @@ def test_a_given_budget_caps_adc_and_none_leaves_it_to_memory():
 def test_an_opacity_reset_is_not_rolled_back_as_a_divergence():
     """3DGS's opacity reset raises the loss on purpose; the guard judges the loss afresh after
     it instead of rolling the reset back and halving the step size."""
-    import sys
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from scenes import synthetic_scene
-
     from splatk.train.trainer import TrainConfig, Trainer
 
     scene = synthetic_scene(num_views=8)
