@@ -76,7 +76,8 @@ _DEFAULT_FLAGS = ("iters", "time_budget", "downscale", "threads", "init", "backe
 def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_bytes, only, metrics, lpips_net,
             no_scale_schedules, stability, charts_only, quiet, **flags):
     """Fit and evaluate every method on every SCENE into OUT; resumable (finished runs are
-    skipped); draws PSNR vs render time / training time / footprint with the Pareto front.
+    skipped, and a method whose settings equal a finished run's, e.g. `--k auto` choosing a k
+    the grid also lists, reports that run instead of training it again); draws PSNR vs render time / training time / footprint with the Pareto front.
     SIGTERM or Ctrl-C stops the fit in progress at its next iteration with a checkpoint (exit
     128 + the signal); the same command goes on from there.
 
@@ -140,6 +141,8 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             extra = f": {info['psnr']:.2f} dB, {info['train_seconds']:.1f} s training"
         elif kind == "failed":
             extra = f": {info['error']}"
+        elif kind == "same run":
+            extra = f": the finished run of {info['as']} (the same settings)"
         console.print(f"[bold]{kind:>9}[/] {info['scene']} / {info['method']}{extra}")
 
     if charts_only and not stability:

@@ -334,3 +334,35 @@ def test_auto_budget_result_keeps_the_whole_report(scene, tmp_path):
     fit_report = json.loads((Path(row["run"]) / "fit.json").read_text())["auto_budget"]
     assert row["auto_budget_report"] == fit_report and row["auto_budget"] == fit_report["chosen_budget"]
     assert fit_report["stages"]
+
+
+def test_partial_auto_k_run_resumes_from_checkpoint(scene, tmp_path, monkeypatch):
+    """A `k: auto` run records the k it chose; the bench still knows it as its own run."""
+    cfg = BenchConfig(methods=[{"kernel": "learned", "k": "auto"}], defaults=BASE, metrics=("psnr",))
+    fit_cfg, _ = fit_config_for(cfg.methods[0], cfg.defaults)
+    run = tmp_path / "runs" / "demo" / method_id(cfg.methods[0])
+    run_fit(scene, run, fit_cfg, should_stop=lambda: True)
+    calls = _spy_run_fit(monkeypatch)
+    res = run_bench([scene], cfg, tmp_path)
+    assert calls == [True]
+    assert res.rows[0]["iterations"] == 40
+
+
+def test_methods_with_the_same_settings_share_one_run(scene, tmp_path, monkeypatch):
+    """`k: auto` on 32 x 32 views at 200 primitives (5 pixels each) chooses k = 2: the grid trains
+    that run once and reports it under both ids; k = 8 is a run of its own."""
+    methods = [{"kernel": "learned", "k": "auto"}, {"kernel": "learned", "k": 2}, {"kernel": "learned", "k": 8}]
+    cfg = BenchConfig(methods=methods, defaults=BASE, metrics=("psnr",))
+    calls = _spy_run_fit(monkeypatch)
+    events = []
+    rows = {r["method"]: r for r in run_bench([scene], cfg, tmp_path, charts=False,
+                                             on_event=lambda kind, info: events.append((kind, info))).rows}
+    assert calls == [False, False]
+    assert [(info["method"], info["as"]) for kind, info in events if kind == "same run"] == [
+        ("learned-k2-sh", "learned-kauto-sh")]
+    auto, k2, k8 = rows["learned-kauto-sh"], rows["learned-k2-sh"], rows["learned-k8-sh"]
+    assert k2["same_run_as"] == "learned-kauto-sh" and k2["run"] == auto["run"]
+    assert k2["psnr"] == auto["psnr"] and k2["config"]["kernel_options"]["k"] == 2
+    assert "same_run_as" not in k8 and k8["psnr"] != auto["psnr"]
+    # a second call reuses all three results
+    assert run_bench([scene], cfg, tmp_path, charts=False).rows == list(rows.values()) and calls == [False, False]

@@ -29,9 +29,10 @@ import yaml
 
 from ..data import detect_format, load_scene
 from ..errors import InputError
+from ..kernels.auto_k import AUTO_K, chosen_by_rule
 from ..machine import machine_info
 from ..stages.evaluate import run_eval
-from ..stages.fit import RESUME_CHANGEABLE, run_fit
+from ..stages.fit import RESUME_CHANGEABLE, run_fit, with_auto_k_resolved
 from ..stages.fit_config import FitConfig
 from .methods import PRETRAIN_KEYS, fit_config_for, method_id, pretraining
 
@@ -114,10 +115,32 @@ def _same_settings(run: Path, cfg: FitConfig) -> bool:
     """Whether the run folder was started with ``cfg``, placement aside (a stale partial run is
     started over)."""
     try:
-        saved = yaml.safe_load((run / "config.yaml").read_text())["settings"]
+        doc = yaml.safe_load((run / "config.yaml").read_text())
+        saved = doc["settings"]
+        if chosen_by_rule((doc.get("sources") or {}).get("k")):
+            # a `k: auto` run records the k it chose; it is still the `k: auto` cell
+            saved["kernel_options"]["k"] = AUTO_K
     except (OSError, KeyError, TypeError, yaml.YAMLError):
         return False
     return _without_placement(_normalise(saved)) == _without_placement(_normalise(cfg.to_dict()))
+
+
+def _same_run_elsewhere(scene, mid: str, fit_cfg: FitConfig, root: Path) -> dict | None:
+    """The finished result of another method of ROOT on ``scene`` whose settings are this
+    method's once ``k: auto`` is resolved, placement aside; None if there is none."""
+    resolved, _ = with_auto_k_resolved(scene, fit_cfg)
+    wanted = _without_placement(_normalise(resolved.to_dict()))
+    scene_path = str(Path(scene).resolve())
+    for path in sorted((root / "results").glob(f"{scene_name(scene)}__*.json")):
+        try:
+            row = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if (row.get("status") == "ok" and row.get("method") != mid and row.get("scene_path") == scene_path
+                and not row.get("same_run_as") and isinstance(row.get("config"), dict)
+                and _without_placement(_normalise(row["config"])) == wanted and _fit_finished(Path(row["run"]))):
+            return row
+    return None
 
 
 def write_json(path: Path, obj) -> None:
@@ -182,7 +205,15 @@ def run_one(
     row: dict = {"scene": sname, "scene_path": str(Path(scene).resolve()), "method": mid, **(extra or {})}
     same = _same_settings(run, fit_cfg)
     try:
-        if same and _fit_finished(run):
+        twin = None if same else _same_run_elsewhere(scene, mid, fit_cfg, root)
+        if twin is not None:
+            # another method's finished run is this one (e.g. `k: auto` chose the k of a method
+            # beside it): evaluate that run instead of training it again
+            run, fit_cfg = Path(twin["run"]), FitConfig.from_dict(twin["config"])
+            row["same_run_as"] = twin["method"]
+            if on_event:
+                on_event("same run", {**info, "as": twin["method"]})
+        elif same and _fit_finished(run):
             if on_event:
                 on_event("eval-only", info)
         elif same and (run / "checkpoints" / "last.pt").is_file():

@@ -34,6 +34,17 @@ def rule_text() -> str:
     return "train pixels per view / budget: " + ", ".join(parts) + " (decision 0102)"
 
 
+def source_text(chosen: dict) -> str:
+    """How a run's ``config.yaml`` sources record a k the rule chose (see :func:`chosen_by_rule`)."""
+    return (f"{AUTO_K}: {chosen['pixels_per_primitive']} train pixels per primitive gives "
+            f"k = {chosen['k']} ({chosen['rule']})")
+
+
+def chosen_by_rule(source) -> bool:
+    """Whether a ``config.yaml`` source for k says the run was started with ``k: auto``."""
+    return isinstance(source, str) and source.startswith(f"{AUTO_K}:")
+
+
 def resolve_auto_k(kernel_options: dict, pixels_per_view: float, budget: int) -> dict | None:
     """With ``k: auto`` in ``kernel_options``, set k from the scene and return how it was chosen;
     None when k was given."""

@@ -24,7 +24,7 @@ from ..errors import InputError, TrainingStalled
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
-from ..kernels.auto_k import resolve_auto_k
+from ..kernels.auto_k import AUTO_K, resolve_auto_k, source_text as auto_k_source
 from ..machine import machine_info
 from ..models.init import initial_points
 from ..models.io import model_spec
@@ -300,6 +300,27 @@ def _load_checked_scene(scene_path, cfg: FitConfig):
     return scene
 
 
+def train_pixels_per_view(train_views: list) -> float:
+    """The mean pixel count of the train views: what ``k: auto`` reads (decision 0102)."""
+    return sum(v.width * v.height for v in train_views) / len(train_views)
+
+
+def with_auto_k_resolved(scene_path, cfg: FitConfig) -> tuple[FitConfig, dict | None]:
+    """A copy of ``cfg`` with ``k: auto`` set to the k a new fit of ``scene_path`` would choose,
+    and how it was chosen (None where k is given). Reads the cameras, not the images, so a
+    caller can know the run before it starts (`splatk bench` runs a cell once when two methods
+    resolve to the same settings)."""
+    resolved = FitConfig.from_dict(cfg.to_dict())
+    if resolved.kernel_options.get("k") != AUTO_K:
+        return resolved, None
+    scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every, load_images=False,
+                       eval_split=cfg.eval_split)
+    train = scene.train[::cfg.view_stride]
+    if not train:
+        raise InputError(scene_path, "no training images found")
+    return resolved, resolve_auto_k(resolved.kernel_options, train_pixels_per_view(train), resolved.train.budget)
+
+
 def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_changes: dict,
          config_sources, on_start, on_step, should_stop, overwrite: bool = False, world: World = SINGLE,
          start: Start | None = None) -> FitResult:
@@ -316,11 +337,9 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
             raise InputError(scene_path, "the scene changed since the run started (its images, cameras or points "
                              "differ from the checkpoint's)", "restore the scene, or start a new run with another --out")
     if not resume:
-        pixels = sum(v.width * v.height for v in scene.train) / len(scene.train)
-        chosen = resolve_auto_k(cfg.kernel_options, pixels, cfg.train.budget)
+        chosen = resolve_auto_k(cfg.kernel_options, train_pixels_per_view(scene.train), cfg.train.budget)
         if chosen is not None:
-            config_sources = {**(config_sources or {}), "k": f"auto: {chosen['pixels_per_primitive']} train pixels "
-                              f"per primitive gives k = {chosen['k']} ({chosen['rule']})"}
+            config_sources = {**(config_sources or {}), "k": auto_k_source(chosen)}
     auto, holdout = None, []
     all_train = list(scene.train)  # the refit of --budget auto trains on every one, in this order
     if cfg.auto_budget is not None:
