@@ -336,16 +336,22 @@ def test_auto_budget_result_keeps_the_whole_report(scene, tmp_path):
     assert fit_report["stages"]
 
 
-def test_partial_auto_k_run_resumes_from_checkpoint(scene, tmp_path, monkeypatch):
-    """A `k: auto` run records the k it chose; the bench still knows it as its own run."""
-    cfg = BenchConfig(methods=[{"kernel": "learned", "k": "auto"}], defaults=BASE, metrics=("psnr",))
-    fit_cfg, _ = fit_config_for(cfg.methods[0], cfg.defaults)
-    run = tmp_path / "runs" / "demo" / method_id(cfg.methods[0])
-    run_fit(scene, run, fit_cfg, should_stop=lambda: True)
-    calls = _spy_run_fit(monkeypatch)
-    res = run_bench([scene], cfg, tmp_path)
-    assert calls == [True]
-    assert res.rows[0]["iterations"] == 40
+@pytest.mark.parametrize("method, defaults", [
+    ({"kernel": "learned", "k": "auto"}, {}),  # config.yaml records the k it chose
+    ({"kernel": "gaussian", "budget": "auto"}, {"budget": None, "iters": 60}),
+    ({"kernel": "gaussian", "strategy": "adc"}, {}),
+    ({"kernel": "learned", "primitive": "planar"}, {}),
+], ids=["k-auto", "budget-auto", "adc", "planar"])
+def test_every_kind_of_stopped_cell_resumes(scene, tmp_path, method, defaults):
+    """A cell stopped mid-fit goes on from its checkpoint on the next call, whatever the fit
+    derives or records at its start, instead of being started over."""
+    cfg = BenchConfig(methods=[method], defaults={k: v for k, v in {**BASE, **defaults}.items() if v is not None},
+                      metrics=("psnr",))
+    stopped = _stopped_grid(scene, cfg, tmp_path, polls=10)
+    assert (stopped.run / "checkpoints" / "last.pt").is_file()
+    events = []
+    (row,) = run_bench([scene], cfg, tmp_path, charts=False, on_event=lambda kind, info: events.append(kind)).rows
+    assert events == ["resume", "done"] and row["status"] == "ok"
 
 
 def test_methods_with_the_same_settings_share_one_run(scene, tmp_path, monkeypatch):
