@@ -13,11 +13,16 @@ best analytic kernel of the scene (3DGS-ADC, Gaussian-MCMC, Beta, Student-t: pap
 comparison). Writes the same numbers as JSON (default OUT/kernel_table.json). Targets: learned >=
 gaussian + 0.5 dB on at least three of the four scenes (issue #4), learned >= every analytic
 kernel + 0.5 dB on at least three of four scenes at each budget (paper Tab. 2, issue #32).
+
+Draws OUT/charts/kernels_psnr_vs_mb and kernels_psnr_vs_render_ms (PNG and SVG): one panel per
+scene, one line per kernel through its budgets (the paper's PSNR-vs-memory and
+PSNR-vs-render-time plots).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections import defaultdict
 from pathlib import Path
 
@@ -45,10 +50,57 @@ def cell_text(row: dict) -> str:
     return f"{row['psnr']:.2f} / {row['ssim']:.3f} ({row['num_primitives']:,}{auto}{rolled})"
 
 
+def kernel_series(cells: dict, key: str) -> dict:
+    """scene -> kernel -> [(``key`` of the run, test PSNR)] over the budgets, by ``key``; runs
+    without a finite ``key`` are left out."""
+    series: dict = defaultdict(lambda: defaultdict(list))
+    for (_, scene), by_kernel in cells.items():
+        for kernel, row in by_kernel.items():
+            x = row.get(key)
+            if isinstance(x, (int, float)) and math.isfinite(x):
+                series[scene][kernel].append((x, row["psnr"]))
+    return {s: {k: sorted(pts) for k, pts in by_kernel.items()} for s, by_kernel in series.items()}
+
+
+def draw_kernel_charts(cells: dict, out_dir: Path) -> list[Path]:
+    """PSNR against footprint and against render time, a panel per scene, a line per kernel."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    paths = []
+    for key, label, stem in (("footprint_mb", "model footprint (MB)", "kernels_psnr_vs_mb"),
+                             ("render_ms", "render time per view (ms, median)", "kernels_psnr_vs_render_ms")):
+        series = kernel_series(cells, key)
+        if not series:
+            continue
+        scenes = sorted(series)
+        fig = Figure(figsize=(4.2 * len(scenes), 3.6), layout="constrained")
+        FigureCanvasAgg(fig)
+        axes = fig.subplots(1, len(scenes), squeeze=False)[0]
+        for ax, scene in zip(axes, scenes):
+            for i, kernel in enumerate(KERNELS):
+                pts = series[scene].get(kernel)
+                if pts:
+                    # learned kernels solid, analytic dashed: the comparison the table makes
+                    style = "-" if kernel.startswith("learned") else "--"
+                    ax.plot(*zip(*pts), style, marker="o", color=f"C{i}", label=kernel)
+            ax.set_title(scene)
+            ax.set_xlabel(label)
+            ax.set_ylabel("test PSNR (dB)")
+            ax.grid(alpha=0.3)
+        axes[-1].legend(fontsize="small")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for suffix in (".png", ".svg"):
+            fig.savefig(out_dir / f"{stem}{suffix}", dpi=110)
+            paths.append(out_dir / f"{stem}{suffix}")
+    return paths
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
     ap.add_argument("--json")
+    ap.add_argument("--charts", help="folder for the charts (default OUT/charts)")
     args = ap.parse_args()
     cells: dict = defaultdict(dict)  # (budget, scene) -> kernel -> row
     for path in sorted(Path(args.out, "results").glob("*.json")):
@@ -118,6 +170,8 @@ def main() -> None:
     out = Path(args.json) if args.json else Path(args.out) / "kernel_table.json"
     out.write_text(json.dumps(summary, indent=2))
     print(f"\nwrote {out}")
+    for path in draw_kernel_charts(cells, Path(args.charts) if args.charts else Path(args.out) / "charts"):
+        print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -274,3 +274,25 @@ def test_kernel_table_measures_learned_against_the_best_analytic_kernel(tmp_path
     assert summary["scenes_with_every_analytic"] == 2  # c has the Gaussian only
     assert summary["met_tab2_best_k"] == 1 and summary["met_tab2_auto"] == 2  # b: auto +0.6, k = 2 +0.1
     assert summary["met_best_k"] == 3  # learned vs the Gaussian alone counts c too
+
+
+def test_kernel_table_draws_a_line_per_kernel_through_its_budgets(tmp_path, monkeypatch):
+    script = load_script(next(s for s in SCRIPTS if s.stem == "kernel_table"))
+    results = tmp_path / "results"
+    results.mkdir()
+    for budget, mb in (("256KB", 0.25), ("512KB", 0.5)):
+        for spec, psnr in (({"kernel": "gaussian"}, 24.0 + mb), ({"kernel": "learned", "k": 4}, 23.0 + 4 * mb)):
+            row = {"status": "ok", "scene": "a", "psnr": psnr, "ssim": 0.9, "num_primitives": 100,
+                   "footprint_mb": mb, "render_ms": 10 * mb, "method_spec": {**spec, "budget_bytes": budget}}
+            (results / f"a__{spec['kernel']}-{budget}.json").write_text(json.dumps(row))
+    monkeypatch.setattr("sys.argv", ["kernel_table.py", str(tmp_path)])
+    script.main()
+    import cv2
+
+    for stem in ("kernels_psnr_vs_mb", "kernels_psnr_vs_render_ms"):
+        image = cv2.imread(str(tmp_path / "charts" / f"{stem}.png"))
+        assert image is not None and image.shape[1] > 200
+    cells = {("256KB", "a"): {"gaussian": {"psnr": 24.25, "footprint_mb": 0.25}},
+             ("512KB", "a"): {"gaussian": {"psnr": 24.5, "footprint_mb": 0.5},
+                              "learned-k4": {"psnr": 25.0, "footprint_mb": float("nan")}}}
+    assert script.kernel_series(cells, "footprint_mb") == {"a": {"gaussian": [(0.25, 24.25), (0.5, 24.5)]}}
