@@ -51,15 +51,16 @@ def cell_text(row: dict) -> str:
 
 
 def kernel_series(cells: dict, key: str) -> dict:
-    """scene -> kernel -> [(``key`` of the run, test PSNR)] over the budgets, by ``key``; runs
-    without a finite ``key`` are left out."""
+    """scene -> kernel -> [(``key`` of the run, test PSNR)] in the order of the runs' footprints
+    (the budgets); runs without a finite ``key`` are left out."""
     series: dict = defaultdict(lambda: defaultdict(list))
     for (_, scene), by_kernel in cells.items():
         for kernel, row in by_kernel.items():
             x = row.get(key)
             if isinstance(x, (int, float)) and math.isfinite(x):
-                series[scene][kernel].append((x, row["psnr"]))
-    return {s: {k: sorted(pts) for k, pts in by_kernel.items()} for s, by_kernel in series.items()}
+                series[scene][kernel].append((row.get("footprint_mb", 0), x, row["psnr"]))
+    return {s: {k: [(x, y) for _, x, y in sorted(pts)] for k, pts in by_kernel.items()}
+            for s, by_kernel in series.items()}
 
 
 def draw_kernel_charts(cells: dict, out_dir: Path) -> list[Path]:
