@@ -77,7 +77,8 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             no_scale_schedules, stability, charts_only, quiet, **flags):
     """Fit and evaluate every method on every SCENE into OUT; resumable (finished runs are
     skipped, and a method whose settings equal a finished run's, e.g. `--k auto` choosing a k
-    the grid also lists, reports that run instead of training it again); draws PSNR vs render time / training time / footprint with the Pareto front.
+    the grid also lists, reports that run instead of training it again); draws PSNR vs render
+    time / training time / footprint with the Pareto front.
     SIGTERM or Ctrl-C stops the fit in progress at its next iteration with a checkpoint (exit
     128 + the signal); the same command goes on from there.
 

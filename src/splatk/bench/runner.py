@@ -125,9 +125,10 @@ def _same_settings(run: Path, cfg: FitConfig) -> bool:
     return _without_placement(_normalise(saved)) == _without_placement(_normalise(cfg.to_dict()))
 
 
-def _same_run_elsewhere(scene, mid: str, fit_cfg: FitConfig, root: Path) -> dict | None:
+def _same_run_elsewhere(scene, mid: str, fit_cfg: FitConfig, root: Path) -> tuple[dict | None, FitConfig]:
     """The finished result of another method of ROOT on ``scene`` whose settings are this
-    method's once ``k: auto`` is resolved, placement aside; None if there is none."""
+    method's once ``k: auto`` is resolved, placement aside (None if there is none), and those
+    resolved settings."""
     resolved, _ = with_auto_k_resolved(scene, fit_cfg)
     wanted = _without_placement(_normalise(resolved.to_dict()))
     scene_path = str(Path(scene).resolve())
@@ -139,8 +140,8 @@ def _same_run_elsewhere(scene, mid: str, fit_cfg: FitConfig, root: Path) -> dict
         if (row.get("status") == "ok" and row.get("method") != mid and row.get("scene_path") == scene_path
                 and not row.get("same_run_as") and isinstance(row.get("config"), dict)
                 and _without_placement(_normalise(row["config"])) == wanted and _fit_finished(Path(row["run"]))):
-            return row
-    return None
+            return row, resolved
+    return None, resolved
 
 
 def write_json(path: Path, obj) -> None:
@@ -205,11 +206,11 @@ def run_one(
     row: dict = {"scene": sname, "scene_path": str(Path(scene).resolve()), "method": mid, **(extra or {})}
     same = _same_settings(run, fit_cfg)
     try:
-        twin = None if same else _same_run_elsewhere(scene, mid, fit_cfg, root)
+        twin, resolved = (None, None) if same else _same_run_elsewhere(scene, mid, fit_cfg, root)
         if twin is not None:
             # another method's finished run is this one (e.g. `k: auto` chose the k of a method
-            # beside it): evaluate that run instead of training it again
-            run, fit_cfg = Path(twin["run"]), FitConfig.from_dict(twin["config"])
+            # beside it): evaluate that run, placed as asked now, instead of training it again
+            run, fit_cfg = Path(twin["run"]), resolved
             row["same_run_as"] = twin["method"]
             if on_event:
                 on_event("same run", {**info, "as": twin["method"]})
