@@ -71,7 +71,8 @@ def adc_history(run: Path) -> dict:
     fit = json.loads((run / "fit.json").read_text())
     return {"count": {r["it"]: r["num"] for r in log if r["it"] % 1000 == 0},
             "final_primitives": fit["num_primitives"],
-            "rollbacks": [e for e in fit.get("events", []) if "rollback" in e.get("event", "")]}
+            "rollbacks": [e for e in fit.get("events", []) if "rollback" in e.get("event", "")],
+            "opacity_resets": [e["iteration"] for e in fit.get("events", []) if e.get("event") == "opacity_reset"]}
 
 
 def main() -> None:
@@ -112,6 +113,7 @@ def main() -> None:
         counts = h["count"]
         print(f"{arm} primitives: " + ", ".join(f"{it}: {n:,}" for it, n in counts.items() if it % step == 0))
         print(f"{arm} rollbacks: {len(h['rollbacks'])}")
+        print(f"{arm} opacity resets at: {', '.join(map(str, h['opacity_resets'])) or 'none'}")
     if mcmc:
         print(f"MCMC rollbacks: {len(mcmc['rollbacks'])}")
     out = {"scene": args.scene, "iters": args.iters, "downscale": args.downscale, "results": rows,

@@ -198,4 +198,6 @@ def test_an_opacity_reset_is_not_rolled_back_as_a_divergence():
     before, after = sum(losses[100:120]) / 20, sum(losses[121:131]) / 10
     assert after > 1.5 * before  # the reset did raise the loss
     assert not [e for e in tr.events if "rollback" in e["event"]], tr.events
+    # fit.json lists every reset: at densify_from (the scene's background is white) and every 120
+    assert [e["iteration"] for e in tr.events if e["event"] == "opacity_reset"] == [40, 120]
     assert tr.lr_scale == 1.0

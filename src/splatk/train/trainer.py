@@ -287,6 +287,9 @@ class Trainer:
                 self.strategy.step(self.it, p, self.model, self.opt, means_lr, self.mcmc_gen)
                 if self.strategy.raised_loss():
                     self.guard.reset_loss_stats()  # the jump is the strategy's, not a divergence
+                    # fit.json lists them, so a run shows its schedule (3DGS: every 3,000 iterations)
+                    self.events.append({"iteration": self.it, "event": "opacity_reset",
+                                        "message": f"iteration {self.it}: opacities reset to 0.01"})
                 event = self._note_growth_held()
                 self.guard.note_step()
         mse = mse / len(views)
