@@ -14,8 +14,8 @@ Each is followed by ``splatk eval --metrics psnr,ssim --json`` on the test views
 psnr`` on the train views. A run folder that already has its ``eval.json`` is not run again; one
 stopped part-way (a checkpoint, no ``eval.json``) goes on with ``splatk fit --resume``. Prints the
 table, the ADC run's primitive count at each logged iteration, its opacity resets and rollbacks,
-and writes OUT/adc_check.json (the committed one: benchmarks/results/adc_check_lego_7k.json, 7k
-iterations at 1/4 resolution).
+and writes OUT/adc_check.json (the committed ones: benchmarks/results/adc_check_lego_30k.json and
+adc_check_lego_7k.json, 30k and 7k iterations at 1/4 resolution).
 """
 from __future__ import annotations
 
