@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -27,6 +28,7 @@ from splatk.bench import (
 from splatk.bench.charts import pareto_front
 from splatk.stages.fit_config import bytes_per_primitive
 from splatk.stages.fit import run_fit
+from tests.data.layouts import write_ply
 
 BASE = {"iters": 40, "budget": 200, "init": "random", "sh_degree": 1, "backend": "torch", "threads": 1}
 METHODS = [{"kernel": "gaussian"}, {"kernel": "learned", "k": 2}]
@@ -35,6 +37,17 @@ METHODS = [{"kernel": "gaussian"}, {"kernel": "learned", "k": 2}]
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return make_demo_scene(tmp_path_factory.mktemp("bench") / "demo", num_views=8, size=32)
+
+
+@pytest.fixture(scope="module")
+def scene_with_points(tmp_path_factory):
+    """The demo scene with SfM-like points (``ply_file_path``), so that ``init: auto`` is sfm."""
+    root = make_demo_scene(tmp_path_factory.mktemp("bench_points") / "points", num_views=8, size=32)
+    rng = np.random.default_rng(0)
+    write_ply(root / "points.ply", rng.uniform(-1, 1, (300, 3)), rng.uniform(0, 1, (300, 3)))
+    doc = json.loads((root / "transforms_train.json").read_text())
+    (root / "transforms_train.json").write_text(json.dumps({**doc, "ply_file_path": "points.ply"}))
+    return root
 
 
 @pytest.fixture(scope="module")
@@ -336,15 +349,18 @@ def test_auto_budget_result_keeps_the_whole_report(scene, tmp_path):
     assert fit_report["stages"]
 
 
-@pytest.mark.parametrize("method, defaults", [
-    ({"kernel": "learned", "k": "auto"}, {}),  # config.yaml records the k it chose
-    ({"kernel": "gaussian", "budget": "auto"}, {"budget": None, "iters": 60}),
-    ({"kernel": "gaussian", "strategy": "adc"}, {}),
-    ({"kernel": "learned", "primitive": "planar"}, {}),
-], ids=["k-auto", "budget-auto", "adc", "planar"])
-def test_every_kind_of_stopped_cell_resumes(scene, tmp_path, method, defaults):
+@pytest.mark.parametrize("method, defaults, points", [
+    ({"kernel": "learned", "k": "auto"}, {}, False),  # config.yaml records the k it chose
+    ({"kernel": "gaussian"}, {"init": None}, True),  # ... and init auto as sfm
+    ({"kernel": "learned", "k": "auto"}, {"init": None}, True),
+    ({"kernel": "gaussian", "budget": "auto"}, {"budget": None, "iters": 60}, False),
+    ({"kernel": "gaussian", "strategy": "adc"}, {}, False),
+    ({"kernel": "learned", "primitive": "planar"}, {}, False),
+], ids=["k-auto", "init-auto-sfm", "k-and-init-auto", "budget-auto", "adc", "planar"])
+def test_every_kind_of_stopped_cell_resumes(scene, scene_with_points, tmp_path, method, defaults, points):
     """A cell stopped mid-fit goes on from its checkpoint on the next call, whatever the fit
     derives or records at its start, instead of being started over."""
+    scene = scene_with_points if points else scene
     cfg = BenchConfig(methods=[method], defaults={k: v for k, v in {**BASE, **defaults}.items() if v is not None},
                       metrics=("psnr",))
     stopped = _stopped_grid(scene, cfg, tmp_path, polls=10)
@@ -354,11 +370,14 @@ def test_every_kind_of_stopped_cell_resumes(scene, tmp_path, method, defaults):
     assert events == ["resume", "done"] and row["status"] == "ok"
 
 
-def test_methods_with_the_same_settings_share_one_run(scene, tmp_path, monkeypatch):
+@pytest.mark.parametrize("points", [False, True], ids=["random-init", "init-auto-sfm"])
+def test_methods_with_the_same_settings_share_one_run(scene, scene_with_points, tmp_path, monkeypatch, points):
     """`k: auto` on 32 x 32 views at 200 primitives (5 pixels each) chooses k = 2: the grid trains
     that run once and reports it under both ids; k = 8 is a run of its own."""
     methods = [{"kernel": "learned", "k": "auto"}, {"kernel": "learned", "k": 2}, {"kernel": "learned", "k": 8}]
-    cfg = BenchConfig(methods=methods, defaults=BASE, metrics=("psnr",))
+    defaults = {k: v for k, v in BASE.items() if not (points and k == "init")}
+    scene = scene_with_points if points else scene
+    cfg = BenchConfig(methods=methods, defaults=defaults, metrics=("psnr",))
     calls = _spy_run_fit(monkeypatch)
     events = []
     rows = {r["method"]: r for r in run_bench([scene], cfg, tmp_path, charts=False,

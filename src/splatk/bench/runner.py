@@ -29,10 +29,9 @@ import yaml
 
 from ..data import detect_format, load_scene
 from ..errors import InputError
-from ..kernels.auto_k import AUTO_K, chosen_by_rule
 from ..machine import machine_info
 from ..stages.evaluate import run_eval
-from ..stages.fit import RESUME_CHANGEABLE, run_fit, with_auto_k_resolved
+from ..stages.fit import RESUME_CHANGEABLE, run_fit, settings_as_run
 from ..stages.fit_config import FitConfig
 from .methods import PRETRAIN_KEYS, fit_config_for, method_id, pretraining
 
@@ -112,25 +111,20 @@ def _without_placement(settings):
 
 
 def _same_settings(run: Path, cfg: FitConfig) -> bool:
-    """Whether the run folder was started with ``cfg``, placement aside (a stale partial run is
-    started over)."""
+    """Whether the run folder was started with ``cfg`` (as the run records it:
+    :func:`~splatk.stages.fit.settings_as_run`), placement aside (a stale partial run is started
+    over)."""
     try:
-        doc = yaml.safe_load((run / "config.yaml").read_text())
-        saved = doc["settings"]
-        if chosen_by_rule((doc.get("sources") or {}).get("k")):
-            # a `k: auto` run records the k it chose; it is still the `k: auto` cell
-            saved["kernel_options"]["k"] = AUTO_K
+        saved = yaml.safe_load((run / "config.yaml").read_text())["settings"]
     except (OSError, KeyError, TypeError, yaml.YAMLError):
         return False
     return _without_placement(_normalise(saved)) == _without_placement(_normalise(cfg.to_dict()))
 
 
-def _same_run_elsewhere(scene, mid: str, fit_cfg: FitConfig, root: Path) -> tuple[dict | None, FitConfig]:
-    """The finished result of another method of ROOT on ``scene`` whose settings are this
-    method's once ``k: auto`` is resolved, placement aside (None if there is none), and those
-    resolved settings."""
-    resolved, _ = with_auto_k_resolved(scene, fit_cfg)
-    wanted = _without_placement(_normalise(resolved.to_dict()))
+def _same_run_elsewhere(scene, mid: str, as_run: FitConfig, root: Path) -> dict | None:
+    """The finished result of another method of ROOT on ``scene`` whose run has the settings
+    ``as_run`` (resolved as the run records them), placement aside; None if there is none."""
+    wanted = _without_placement(_normalise(as_run.to_dict()))
     scene_path = str(Path(scene).resolve())
     for path in sorted((root / "results").glob(f"{scene_name(scene)}__*.json")):
         try:
@@ -140,8 +134,8 @@ def _same_run_elsewhere(scene, mid: str, fit_cfg: FitConfig, root: Path) -> tupl
         if (row.get("status") == "ok" and row.get("method") != mid and row.get("scene_path") == scene_path
                 and not row.get("same_run_as") and isinstance(row.get("config"), dict)
                 and _without_placement(_normalise(row["config"])) == wanted and _fit_finished(Path(row["run"]))):
-            return row, resolved
-    return None, resolved
+            return row
+    return None
 
 
 def write_json(path: Path, obj) -> None:
@@ -204,13 +198,14 @@ def run_one(
         notes["init"] = "random (no init given and the scene has no SfM points)"
     run = root / "runs" / sname / mid
     row: dict = {"scene": sname, "scene_path": str(Path(scene).resolve()), "method": mid, **(extra or {})}
-    same = _same_settings(run, fit_cfg)
     try:
-        twin, resolved = (None, None) if same else _same_run_elsewhere(scene, mid, fit_cfg, root)
+        as_run = settings_as_run(scene, fit_cfg)  # `auto` settings as the run folder records them
+        same = _same_settings(run, as_run)
+        twin = None if same else _same_run_elsewhere(scene, mid, as_run, root)
         if twin is not None:
             # another method's finished run is this one (e.g. `k: auto` chose the k of a method
             # beside it): evaluate that run, placed as asked now, instead of training it again
-            run, fit_cfg = Path(twin["run"]), resolved
+            run, fit_cfg = Path(twin["run"]), as_run
             row["same_run_as"] = twin["method"]
             if on_event:
                 on_event("same run", {**info, "as": twin["method"]})

@@ -35,14 +35,9 @@ def rule_text() -> str:
 
 
 def source_text(chosen: dict) -> str:
-    """How a run's ``config.yaml`` sources record a k the rule chose (see :func:`chosen_by_rule`)."""
+    """How a run's ``config.yaml`` sources record a k the rule chose."""
     return (f"{AUTO_K}: {chosen['pixels_per_primitive']} train pixels per primitive gives "
             f"k = {chosen['k']} ({chosen['rule']})")
-
-
-def chosen_by_rule(source) -> bool:
-    """Whether a ``config.yaml`` source for k says the run was started with ``k: auto``."""
-    return isinstance(source, str) and source.startswith(f"{AUTO_K}:")
 
 
 def resolve_auto_k(kernel_options: dict, pixels_per_view: float, budget: int) -> dict | None:

@@ -97,8 +97,7 @@ def build_model(scene, cfg: FitConfig, budget: int | None = None) -> SplatModel 
         # error with a message, not a traceback
         make_kernel(cfg.kernel, "planar", **cfg.kernel_options)
     budget = cfg.train.budget if budget is None else budget
-    if cfg.train.init == "auto":  # recorded resolved, so config.yaml says what ran
-        cfg.train.init = "sfm" if scene.points.shape[0] > 0 else "random"
+    resolve_init(cfg, scene)
     n_random = cfg.train.random_points
     if n_random is None:
         # a quarter of the budget, for MCMC to grow (TrainConfig.random_points); --budget auto
@@ -305,20 +304,30 @@ def train_pixels_per_view(train_views: list) -> float:
     return sum(v.width * v.height for v in train_views) / len(train_views)
 
 
-def with_auto_k_resolved(scene_path, cfg: FitConfig) -> tuple[FitConfig, dict | None]:
-    """A copy of ``cfg`` with ``k: auto`` set to the k a new fit of ``scene_path`` would choose,
-    and how it was chosen (None where k is given). Reads the cameras, not the images, so a
-    caller can know the run before it starts (`splatk bench` runs a cell once when two methods
-    resolve to the same settings)."""
+def settings_as_run(scene_path, cfg: FitConfig) -> FitConfig:
+    """A copy of ``cfg`` as a new fit of ``scene_path`` records it in ``config.yaml``: with
+    ``init: auto`` and ``k: auto`` resolved from the scene. Reads the cameras and points, not the
+    images, so that a caller can tell a run folder's settings from the ones asked for before
+    anything trains (`splatk bench` resumes a stopped cell, and runs a cell once when two
+    methods come out the same)."""
     resolved = FitConfig.from_dict(cfg.to_dict())
-    if resolved.kernel_options.get("k") != AUTO_K:
-        return resolved, None
+    if resolved.train.init != "auto" and resolved.kernel_options.get("k") != AUTO_K:
+        return resolved
     scene = load_scene(scene_path, downscale=cfg.downscale, test_every=cfg.test_every, load_images=False,
                        eval_split=cfg.eval_split)
     train = scene.train[::cfg.view_stride]
     if not train:
         raise InputError(scene_path, "no training images found")
-    return resolved, resolve_auto_k(resolved.kernel_options, train_pixels_per_view(train), resolved.train.budget)
+    resolve_init(resolved, scene)
+    resolve_auto_k(resolved.kernel_options, train_pixels_per_view(train), resolved.train.budget)
+    return resolved
+
+
+def resolve_init(cfg: FitConfig, scene) -> None:
+    """``init: auto`` becomes ``sfm`` where the scene has points, else ``random``; recorded
+    resolved, so config.yaml says what ran."""
+    if cfg.train.init == "auto":
+        cfg.train.init = "sfm" if scene.points.shape[0] > 0 else "random"
 
 
 def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_changes: dict,
