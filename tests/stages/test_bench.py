@@ -391,3 +391,16 @@ def test_methods_with_the_same_settings_share_one_run(scene, scene_with_points, 
     assert "same_run_as" not in k8 and k8["psnr"] != auto["psnr"]
     # a second call reuses all three results
     assert run_bench([scene], cfg, tmp_path, charts=False).rows == list(rows.values()) and calls == [False, False]
+
+
+def test_a_finished_run_with_the_same_settings_beats_resuming_a_partial_one(scene, tmp_path, monkeypatch):
+    k2, auto = {"kernel": "learned", "k": 2}, {"kernel": "learned", "k": "auto"}
+    run_bench([scene], BenchConfig(methods=[k2], defaults=BASE, metrics=("psnr",)), tmp_path, charts=False)
+    fit_cfg, _ = fit_config_for(auto, BASE)
+    run_fit(scene, tmp_path / "runs" / "demo" / method_id(auto), fit_cfg, should_stop=lambda: True)
+    calls = _spy_run_fit(monkeypatch)
+    events = []
+    rows = run_bench([scene], BenchConfig(methods=[auto, k2], defaults=BASE, metrics=("psnr",)), tmp_path,
+                     charts=False, on_event=lambda kind, info: events.append(kind)).rows
+    assert calls == [] and events[0] == "same run"
+    assert {r["method"]: r.get("same_run_as") for r in rows} == {method_id(auto): method_id(k2), method_id(k2): None}

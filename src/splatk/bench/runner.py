@@ -201,7 +201,9 @@ def run_one(
     try:
         as_run = settings_as_run(scene, fit_cfg)  # `auto` settings as the run folder records them
         same = _same_settings(run, as_run)
-        twin = None if same else _same_run_elsewhere(scene, mid, as_run, root)
+        finished = same and _fit_finished(run)
+        # a finished run of another method with these settings beats resuming a partial one
+        twin = None if finished else _same_run_elsewhere(scene, mid, as_run, root)
         if twin is not None:
             # another method's finished run is this one (e.g. `k: auto` chose the k of a method
             # beside it): evaluate that run, placed as asked now, instead of training it again
@@ -209,7 +211,7 @@ def run_one(
             row["same_run_as"] = twin["method"]
             if on_event:
                 on_event("same run", {**info, "as": twin["method"]})
-        elif same and _fit_finished(run):
+        elif finished:
             if on_event:
                 on_event("eval-only", info)
         elif same and (run / "checkpoints" / "last.pt").is_file():
