@@ -31,7 +31,8 @@ from ..data import detect_format, load_scene
 from ..errors import InputError
 from ..machine import machine_info
 from ..stages.evaluate import run_eval
-from ..stages.fit import RESUME_CHANGEABLE, run_fit, settings_as_run
+from ..stages.auto_settings import settings_as_run
+from ..stages.fit import RESUME_CHANGEABLE, run_fit
 from ..stages.fit_config import FitConfig
 from .methods import PRETRAIN_KEYS, fit_config_for, method_id, pretraining
 
