@@ -26,6 +26,8 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
+from splatk.option_rules import parse_bytes
+
 KERNELS = ["3dgs-adc", "gaussian", "beta", "student_t", "learned-k2", "learned-k4", "learned-k8", "learned-auto"]
 #: the analytic kernels the learned one is measured against in paper Tab. 2 (3DGS-ADC: the
 #: Gaussian under 3DGS's density control; the others under MCMC)
@@ -112,7 +114,7 @@ def main() -> None:
         if (row.get("spec") or {}).get("primitive", "volumetric") != "volumetric":
             continue
         cells[(str(spec["budget_bytes"]), row["scene"])][kernel_of(row)] = row
-    budgets = sorted({b for b, _ in cells}, key=lambda b: (len(b), b))
+    budgets = sorted({b for b, _ in cells}, key=parse_bytes)
     scenes = sorted({s for _, s in cells})
     summary: dict = {"target_db": TARGET_DB, "fixed_k": FIXED_K, "budgets": {}}
     for b in budgets:
