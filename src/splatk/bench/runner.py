@@ -113,7 +113,7 @@ def _without_placement(settings):
 
 def _same_settings(run: Path, cfg: FitConfig) -> bool:
     """Whether the run folder was started with ``cfg`` (as the run records it:
-    :func:`~splatk.stages.fit.settings_as_run`), placement aside (a stale partial run is started
+    :func:`~splatk.stages.auto_settings.settings_as_run`), placement aside (a stale partial run is started
     over)."""
     try:
         saved = yaml.safe_load((run / "config.yaml").read_text())["settings"]
