@@ -296,3 +296,40 @@ def test_kernel_table_draws_a_line_per_kernel_through_its_budgets(tmp_path, monk
              ("512KB", "a"): {"gaussian": {"psnr": 24.5, "footprint_mb": 0.5},
                               "learned-k4": {"psnr": 25.0, "footprint_mb": float("nan")}}}
     assert script.kernel_series(cells, "footprint_mb") == {"a": {"gaussian": [(0.25, 24.25), (0.5, 24.5)]}}
+
+
+@torch.no_grad()
+def test_learned_donor_view_swaps_profiles_only_where_the_view_is_new():
+    """A view that is itself a train view is every primitive's donor, so it renders as fitted;
+    a new view draws other profiles; each primitive's donor is the train view, among those that
+    see it, whose direction to it is nearest the new view's."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_donor_view"))
+    model = random_model(40, seed=3, kernel="learned")
+    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
+                                                   generator=torch.Generator().manual_seed(0))
+    cams = orbit_cameras(6, size=32)
+    train, new = cams[:5], cams[5]
+    backend = backends.get("torch")
+    bg = torch.zeros(3)
+
+    def fitted(cam):
+        return model.render(cam, bg, backend=backend).image.clamp(0, 1)
+
+    swapped, angle = script.render_with_train_profiles(model, backend, train, train[2], bg)
+    assert fitted(train[2]).amax() > 0.2  # the primitives are in view
+    assert torch.allclose(swapped, fitted(train[2]), atol=1e-6) and angle < 0.05  # float32 acos near 1
+    swapped, angle = script.render_with_train_profiles(model, backend, train, new, bg)
+    assert not torch.allclose(swapped, fitted(new), atol=1e-3) and angle > 1.0
+    assert torch.equal(fitted(new), model.render(new, bg, backend=backend).image.clamp(0, 1))
+
+    donor, _ = script.donors(model, backend, train, new)
+    means = model.prims["means"]
+    to_new = torch.nn.functional.normalize(means - script.camera_pose(new)[0], dim=1)
+    for i in range(len(means)):
+        seen_by = [t for t, cam in enumerate(train) if script.visible_in(model, backend, cam)[i]]
+        if not seen_by:
+            assert donor[i] == -1
+            continue
+        cosines = [float(torch.nn.functional.normalize(means[i] - script.camera_pose(train[t])[0], dim=0) @ to_new[i])
+                   for t in seen_by]
+        assert donor[i] == seen_by[max(range(len(seen_by)), key=cosines.__getitem__)]
