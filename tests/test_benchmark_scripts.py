@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from splatk import backends
+from splatk.functional.projection import quats_to_rotmats
 from tests.scenes import orbit_cameras, random_model
 
 SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
@@ -333,3 +334,54 @@ def test_learned_donor_view_swaps_profiles_only_where_the_view_is_new():
         cosines = [float(torch.nn.functional.normalize(means[i] - script.camera_pose(train[t])[0], dim=0) @ to_new[i])
                    for t in seen_by]
         assert donor[i] == seen_by[max(range(len(seen_by)), key=cosines.__getitem__)]
+
+
+@torch.no_grad()
+def test_learned_held_inputs_hold_only_what_the_train_views_did_not_show():
+    """A train view draws as fitted under every variant; in a new view each primitive seen by a
+    train camera gets a distance inside its train distances and is turned so that the camera sees
+    it from at most the allowed angle off the nearest train direction, and no further than that."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_held_inputs"))
+    model = random_model(40, seed=3, kernel="learned")
+    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
+                                                   generator=torch.Generator().manual_seed(0))
+    cams = orbit_cameras(6, size=32)
+    train, new = cams[:5], cams[5]
+    backend = backends.get("torch")
+    bg = torch.zeros(3)
+    centres, sees = script.train_sight(model, backend, train)
+
+    fitted = model.render(train[2], bg, backend=backend).image.clamp(0, 1)
+    assert fitted.amax() > 0.2  # the primitives are in view
+    for clamp_distance, max_turn_deg in script.VARIANTS.values():
+        held = script.render_held(model, backend, train[2], bg, centres, sees, clamp_distance, max_turn_deg)
+        assert torch.allclose(held, fitted, atol=5e-4)  # float32 acos near 1: a turn of ~0.03 degrees at most
+    held = script.render_held(model, backend, new, bg, centres, sees, True, 0.0)
+    assert not torch.allclose(held, model.render(new, bg, backend=backend).image.clamp(0, 1), atol=1e-3)
+
+    means, quats = model.prims["means"], model.prims["quats"]
+    world_to_cam = new.world_to_cam
+    rot = world_to_cam[:3, :3]
+    means_cam = means @ rot.T + world_to_cam[:3, 3]
+    rotmats_cam = rot @ quats_to_rotmats(quats)
+    to_view = torch.nn.functional.normalize(means - script.camera_pose_of(world_to_cam), dim=1)
+    for max_turn in (0.0, 10.0):
+        turned = 0
+        held_means, held_rot = script.held_inputs(means, means_cam, rotmats_cam, world_to_cam, centres, sees,
+                                                  True, max_turn)
+        for i in range(len(means)):
+            seen_by = torch.nonzero(sees[i]).flatten()
+            if len(seen_by) == 0:
+                assert torch.allclose(held_means[i], means_cam[i]) and torch.allclose(held_rot[i], rotmats_cam[i])
+                continue
+            dist = (means[i] - centres[seen_by]).norm(dim=1)
+            assert dist.min() - 1e-5 <= held_means[i].norm() <= dist.max() + 1e-5
+            # the direction the held inputs show: this camera's direction in the primitive's turned frame,
+            # taken back to the world by the primitive's own rotation
+            shown = rot.T @ rotmats_cam[i] @ held_rot[i].T @ rot @ to_view[i]
+            directions = torch.nn.functional.normalize(means[i] - centres[seen_by], dim=1)
+            off = math.degrees(math.acos(min(1.0, float((directions @ shown).max()))))
+            before = math.degrees(math.acos(min(1.0, float((directions @ to_view[i]).max()))))
+            assert off == pytest.approx(min(before, max_turn), abs=0.2)  # float32 acos near 1
+            turned += before > max_turn + 5
+        assert turned > 5  # the new view is far enough out that the turn binds
