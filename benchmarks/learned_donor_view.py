@@ -94,19 +94,25 @@ def render_with_train_profiles(model, backend, train, test_cam, background) -> t
     return image, float(angle[idx][seen].mean()) if seen.any() else math.nan
 
 
-@torch.no_grad()
-def analyse(run: Path) -> dict:
+def load_learned_run(run: Path):
+    """(model, meta, scene, background) of a learned run, the scene loaded as the run loaded it and
+    its train views the ones the run trained on."""
     model, meta = load_model(run / "model.pt")
     if not model.kernel.needs_view:
-        raise SystemExit(f"{run}: kernel {meta['spec']['kernel']} has no view dependence to swap")
+        raise SystemExit(f"{run}: kernel {meta['spec']['kernel']} has no view dependence")
     scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0), test_every=meta.get("test_every", 8),
                        background=tuple(meta["background"]) if meta.get("background") else None,
                        eval_split=meta.get("eval_split", "held-out"))
     fitted_summary = run / "fit.json"
     stride = json.loads(fitted_summary.read_text()).get("view_stride", 1) if fitted_summary.is_file() else 1
-    scene.train = scene.train[::stride]  # the views the run trained on
+    scene.train = scene.train[::stride]
+    return model, meta, scene, torch.tensor(scene.background, dtype=torch.float32)
+
+
+@torch.no_grad()
+def analyse(run: Path) -> dict:
+    model, meta, scene, background = load_learned_run(run)
     backend = backends.get("auto", torch.device("cpu"))
-    background = torch.tensor(scene.background, dtype=torch.float32)
     angles = view_angles(scene)
     views = []
     for cam in scene.test:

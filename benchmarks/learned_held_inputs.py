@@ -34,14 +34,12 @@ import torch
 import torch.nn.functional as F
 
 from splatk import backends
-from splatk.data import load_scene
 from splatk.kernels.base import ViewContext
 from splatk.metrics import psnr
-from splatk.models.io import load_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gap_by_view_distance import camera_pose
-from learned_donor_view import visible_in
+from learned_donor_view import load_learned_run, visible_in
 
 #: variant name -> (clamp the distance, largest view angle in degrees left unturned; None: no turn)
 VARIANTS = {"dist": (True, None), "dir0": (False, 0.0), "dir10": (False, 10.0), "dist+dir10": (True, 10.0),
@@ -120,17 +118,8 @@ def render_held(model, backend, cam, background, centres, sees, clamp_distance: 
 
 @torch.no_grad()
 def analyse(run: Path, split: str = "test") -> dict:
-    model, meta = load_model(run / "model.pt")
-    if not model.kernel.needs_view:
-        raise SystemExit(f"{run}: kernel {meta['spec']['kernel']} has no view dependence to hold")
-    scene = load_scene(meta["scene"], downscale=meta.get("downscale", 1.0), test_every=meta.get("test_every", 8),
-                       background=tuple(meta["background"]) if meta.get("background") else None,
-                       eval_split=meta.get("eval_split", "held-out"))
-    fitted_summary = run / "fit.json"
-    stride = json.loads(fitted_summary.read_text()).get("view_stride", 1) if fitted_summary.is_file() else 1
-    scene.train = scene.train[::stride]  # the views the run trained on
+    model, meta, scene, background = load_learned_run(run)
     backend = backends.get("auto", torch.device("cpu"))
-    background = torch.tensor(scene.background, dtype=torch.float32)
     centres, sees = train_sight(model, backend, scene.train)
     views = []
     for cam in (scene.test if split == "test" else scene.train[:4]):

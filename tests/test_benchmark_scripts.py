@@ -299,19 +299,23 @@ def test_kernel_table_draws_a_line_per_kernel_through_its_budgets(tmp_path, monk
     assert script.kernel_series(cells, "footprint_mb") == {"a": {"gaussian": [(0.25, 24.25), (0.5, 24.5)]}}
 
 
+def learned_model_and_views():
+    """A learned model with latents far from zero (so that the view changes its profiles), five
+    train cameras around it and a sixth, new one; the torch backend, a black background."""
+    model = random_model(40, seed=3, kernel="learned")
+    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
+                                                   generator=torch.Generator().manual_seed(0))
+    cams = orbit_cameras(6, size=32)
+    return model, cams[:5], cams[5], backends.get("torch"), torch.zeros(3)
+
+
 @torch.no_grad()
 def test_learned_donor_view_swaps_profiles_only_where_the_view_is_new():
     """A view that is itself a train view is every primitive's donor, so it renders as fitted;
     a new view draws other profiles; each primitive's donor is the train view, among those that
     see it, whose direction to it is nearest the new view's."""
     script = load_script(next(s for s in SCRIPTS if s.stem == "learned_donor_view"))
-    model = random_model(40, seed=3, kernel="learned")
-    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
-                                                   generator=torch.Generator().manual_seed(0))
-    cams = orbit_cameras(6, size=32)
-    train, new = cams[:5], cams[5]
-    backend = backends.get("torch")
-    bg = torch.zeros(3)
+    model, train, new, backend, bg = learned_model_and_views()
 
     def fitted(cam):
         return model.render(cam, bg, backend=backend).image.clamp(0, 1)
@@ -342,13 +346,7 @@ def test_learned_held_inputs_hold_only_what_the_train_views_did_not_show():
     train camera gets a distance inside its train distances and is turned so that the camera sees
     it from at most the allowed angle off the nearest train direction, and no further than that."""
     script = load_script(next(s for s in SCRIPTS if s.stem == "learned_held_inputs"))
-    model = random_model(40, seed=3, kernel="learned")
-    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
-                                                   generator=torch.Generator().manual_seed(0))
-    cams = orbit_cameras(6, size=32)
-    train, new = cams[:5], cams[5]
-    backend = backends.get("torch")
-    bg = torch.zeros(3)
+    model, train, new, backend, bg = learned_model_and_views()
     centres, sees = script.train_sight(model, backend, train)
 
     fitted = model.render(train[2], bg, backend=backend).image.clamp(0, 1)
