@@ -63,10 +63,10 @@ def train_sight(model, backend, train) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @torch.no_grad()
-def held_inputs(means, means_cam, rotmats_cam, world_to_cam, centres, sees, clamp_distance: bool,
+def held_inputs(means, means_cam, rotmats_cam, cam, centres, sees, clamp_distance: bool,
                 max_turn_deg: float | None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(means_cam, rotmats_cam) of the visible primitives (world ``means`` [M, 3], ``sees`` [M, T])
-    held to what the train cameras at ``centres`` that see them showed Phi_proj."""
+    """(means_cam, rotmats_cam) of the primitives visible to ``cam`` (world ``means`` [M, 3],
+    ``sees`` [M, T]) held to what the train cameras at ``centres`` that see them showed Phi_proj."""
     seen = sees.any(1)
     offsets = means[:, None, :] - centres[None]
     dist = offsets.norm(dim=2)
@@ -77,8 +77,8 @@ def held_inputs(means, means_cam, rotmats_cam, world_to_cam, centres, sees, clam
         held = torch.where(seen, torch.minimum(torch.maximum(rho, near), far), rho)
         means_cam = means_cam * (held / rho)[:, None]
     if max_turn_deg is not None:
-        rot = world_to_cam[:3, :3]
-        to_view = F.normalize(means - camera_pose_of(world_to_cam), dim=1)
+        rot = cam.world_to_cam[:3, :3]
+        to_view = F.normalize(means - camera_pose(cam)[0], dim=1)
         directions = offsets / dist[:, :, None]
         cosines = torch.where(sees, (directions * to_view[:, None]).sum(2), torch.full_like(dist, -2.0))
         nearest = directions[torch.arange(len(means)), cosines.argmax(1)]
@@ -91,10 +91,6 @@ def held_inputs(means, means_cam, rotmats_cam, world_to_cam, centres, sees, clam
     return means_cam, rotmats_cam
 
 
-def camera_pose_of(world_to_cam: torch.Tensor) -> torch.Tensor:
-    return -world_to_cam[:3, :3].T @ world_to_cam[:3, 3]
-
-
 @torch.no_grad()
 def render_held(model, backend, cam, background, centres, sees, clamp_distance: bool,
                 max_turn_deg: float | None) -> torch.Tensor:
@@ -105,7 +101,7 @@ def render_held(model, backend, cam, background, centres, sees, clamp_distance: 
     fitted_profile = kernel.profile
 
     def held_profile(vis, view):
-        means_cam, rotmats_cam = held_inputs(means, view.means_cam, view.rotmats_cam, cam.world_to_cam, centres,
+        means_cam, rotmats_cam = held_inputs(means, view.means_cam, view.rotmats_cam, cam, centres,
                                              view_sees, clamp_distance, max_turn_deg)
         return fitted_profile(vis, ViewContext(means_cam, view.scales, rotmats_cam, view.backend))
 

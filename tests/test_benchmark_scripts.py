@@ -362,10 +362,10 @@ def test_learned_held_inputs_hold_only_what_the_train_views_did_not_show():
     rot = world_to_cam[:3, :3]
     means_cam = means @ rot.T + world_to_cam[:3, 3]
     rotmats_cam = rot @ quats_to_rotmats(quats)
-    to_view = torch.nn.functional.normalize(means - script.camera_pose_of(world_to_cam), dim=1)
+    to_view = torch.nn.functional.normalize(means - script.camera_pose(new)[0], dim=1)
     for max_turn in (0.0, 10.0):
         turned = 0
-        held_means, held_rot = script.held_inputs(means, means_cam, rotmats_cam, world_to_cam, centres, sees,
+        held_means, held_rot = script.held_inputs(means, means_cam, rotmats_cam, new, centres, sees,
                                                   True, max_turn)
         for i in range(len(means)):
             seen_by = torch.nonzero(sees[i]).flatten()
