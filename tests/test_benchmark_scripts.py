@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from splatk import backends
+from splatk import backends, metrics
 from splatk.functional.projection import quats_to_rotmats
 from tests.scenes import orbit_cameras, random_model
 
@@ -383,3 +383,23 @@ def test_learned_held_inputs_hold_only_what_the_train_views_did_not_show():
             assert off == pytest.approx(min(before, max_turn), abs=0.2)  # float32 acos near 1
             turned += before > max_turn + 5
         assert turned > 5  # the new view is far enough out that the turn binds
+
+
+@torch.no_grad()
+def test_learned_view_support_weighs_and_leaves_out_what_it_is_asked():
+    """No primitive carries no blending weight and changes no view; all carry all of it, and the
+    view drawn without them is the background."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_view_support"))
+    model, _, new, backend, bg = learned_model_and_views()
+    none = torch.zeros(model.num_primitives, dtype=torch.bool)
+    some = torch.arange(model.num_primitives) % 2 == 0
+    fitted = model.render(new, bg, backend=backend).image.clamp(0, 1)
+    assert fitted.amax() > 0.2  # the primitives are in view
+    new.image = torch.randint(0, 256, fitted.shape, generator=torch.Generator().manual_seed(1), dtype=torch.uint8)
+    assert script.blending_weight_share(model, backend, new, bg, none) == 0.0
+    assert script.blending_weight_share(model, backend, new, bg, ~none) == pytest.approx(1.0)
+    assert 0.05 < script.blending_weight_share(model, backend, new, bg, some) < 0.95
+    assert script.psnr_without(model, backend, new, bg, none) == pytest.approx(float(metrics.psnr(fitted, new.image_float())))
+    blank = bg.expand_as(fitted)
+    assert script.psnr_without(model, backend, new, bg, ~none) == pytest.approx(float(metrics.psnr(blank, new.image_float())), abs=1e-3)
+    assert torch.equal(model.render(new, bg, backend=backend).image.clamp(0, 1), fitted)  # opacities restored

@@ -16,9 +16,11 @@ from dataclasses import dataclass
 
 import torch
 
+from .. import backends
 from ..functional.projection import covariances_3d
 from .optim import PrimitiveAdam
 from .strategies import Strategy, register_strategy
+from .view_support import one_view_primitives
 
 
 @dataclass
@@ -37,6 +39,10 @@ class MCMCConfig:
     #: skip a refine step's growth while it found at least as many dead primitives as the growth
     #: would add (see :meth:`MCMCStrategy.step`)
     hold_growth: bool = True
+    #: a view-dependent kernel's primitives that one train view draws and the others that see
+    #: them switch off count as dead; off until validated
+    #: (:mod:`splatk.train.view_support`, docs/decisions/0113)
+    relocate_one_view: bool = False
 
 
 #: 3DGS-MCMC's binomial table stops at 51 copies (gsplat RelocationCUDA.cu n_max)
@@ -67,15 +73,18 @@ class MCMCStrategy(Strategy):
 
     @classmethod
     def from_train_config(cls, config, scene) -> "MCMCStrategy":
-        return cls(config.mcmc, cap_max=config.budget)
+        return cls(config.mcmc, cap_max=config.budget, views=scene.train,
+                   backend=backends.get(config.backend, torch.device(config.device)))
 
-    def __init__(self, config: MCMCConfig, cap_max: int = 100_000):
+    def __init__(self, config: MCMCConfig, cap_max: int = 100_000, views=(), backend=None):
         # checked here, not at the first refine step hundreds of iterations into a run
         if config.split_scales not in ("keep", "shrink"):
             raise ValueError(f"split_scales must be keep or shrink, got {config.split_scales!r}")
         self.cfg = config
         #: the most primitives growth may reach (the run's budget; --budget auto moves it)
         self.cap_max = cap_max
+        #: the train cameras and ops that find one-view primitives (``relocate_one_view``)
+        self.views, self.backend = list(views), backend
         self.last_stats: dict = {}
 
     def is_refine_step(self, it: int, progress: float) -> bool:
@@ -130,6 +139,8 @@ class MCMCStrategy(Strategy):
         op = model.opacities
         finite = torch.stack([torch.isfinite(v).reshape(v.shape[0], -1).all(1) for v in model.prims.values()]).all(0)
         dead = (op <= self.cfg.min_opacity) | ~finite
+        if self.cfg.relocate_one_view and self.backend is not None:
+            dead |= one_view_primitives(model, self.backend, self.views)
         alive = ~dead
         n_dead = int(dead.sum())
         if n_dead == 0 or int(alive.sum()) == 0:
