@@ -73,8 +73,10 @@ class MCMCStrategy(Strategy):
 
     @classmethod
     def from_train_config(cls, config, scene) -> "MCMCStrategy":
-        return cls(config.mcmc, cap_max=config.budget, views=scene.train,
-                   backend=backends.get(config.backend, torch.device(config.device)))
+        # its own ops only when it needs them: the trainer resolves the run's backend once
+        backend = (backends.get(config.backend, torch.device(config.device))
+                   if config.mcmc.relocate_one_view else None)
+        return cls(config.mcmc, cap_max=config.budget, views=scene.train, backend=backend)
 
     def __init__(self, config: MCMCConfig, cap_max: int = 100_000, views=(), backend=None):
         # checked here, not at the first refine step hundreds of iterations into a run
