@@ -8,9 +8,10 @@ every view that sees it. Decisions 0110 and 0111 traced kangaroo's near test-vie
 30k protocol to such primitives ("view-switched sheets"). This script asks whether they can be
 told apart during training.
 
-A primitive is **one-view** as :mod:`splatk.train.view_support` defines it: its second-largest
-effective peak (opacity x d(0)) over the train views that see it is under ``--ratio`` (0.25) x its
-largest, and its largest is at least ``--floor`` (0.1), so that faint primitives do not count.
+A primitive is **one-view** as :mod:`splatk.train.view_support` defines it: two or more train
+views see it, its second-largest effective peak (opacity x d(0)) over them is under ``--ratio``
+(0.25) x its largest, and its largest is at least ``--floor`` (0.1), so that faint primitives do
+not count.
 
 Per run and split (train, test) it prints the share of the views' blending weight (sum over
 pixels of each primitive's alpha x transmittance) that one-view primitives carry, and the PSNR of
@@ -38,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from learned_donor_view import load_learned_run  # noqa: E402
 
 
-def blending_weight_share(model, backend, cam, background, mask: torch.Tensor) -> float:
+def blending_weight_share(model, backend, cam, mask: torch.Tensor) -> float:
     """Share of the view's blending weight (sum over pixels of alpha x transmittance) on ``mask``."""
     weights = torch.stack([mask.float(), torch.ones(len(mask))], dim=1)
     with torch.no_grad():
@@ -74,7 +75,7 @@ def analyse(run: Path, ratio: float, floor: float) -> dict:
                 fitted = model.render(cam, background, backend=backend).image.clamp(0, 1)
             result["views"].append({
                 "split": split, "view": cam.name,
-                "one_view_weight_share": blending_weight_share(model, backend, cam, background, one_view),
+                "one_view_weight_share": blending_weight_share(model, backend, cam, one_view),
                 "psnr_as_fitted": float(psnr(fitted, cam.image_float())),
                 "psnr_without_one_view": psnr_without(model, backend, cam, background, one_view)})
     for split in ("train", "test"):

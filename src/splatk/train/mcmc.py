@@ -82,6 +82,8 @@ class MCMCStrategy(Strategy):
         # checked here, not at the first refine step hundreds of iterations into a run
         if config.split_scales not in ("keep", "shrink"):
             raise ValueError(f"split_scales must be keep or shrink, got {config.split_scales!r}")
+        if config.relocate_one_view and backend is None:
+            raise ValueError("relocate_one_view needs the ops (backend) that draw the train views")
         self.cfg = config
         #: the most primitives growth may reach (the run's budget; --budget auto moves it)
         self.cap_max = cap_max
@@ -141,7 +143,7 @@ class MCMCStrategy(Strategy):
         op = model.opacities
         finite = torch.stack([torch.isfinite(v).reshape(v.shape[0], -1).all(1) for v in model.prims.values()]).all(0)
         dead = (op <= self.cfg.min_opacity) | ~finite
-        if self.cfg.relocate_one_view and self.backend is not None:
+        if self.cfg.relocate_one_view:
             dead |= one_view_primitives(model, self.backend, self.views)
         alive = ~dead
         n_dead = int(dead.sum())
