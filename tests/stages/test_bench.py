@@ -26,7 +26,7 @@ from splatk.bench import (
     run_stability,
 )
 from splatk.bench.charts import pareto_front
-from splatk.stages.fit_config import bytes_per_primitive
+from splatk.stages.fit_memory import bytes_per_primitive
 from splatk.stages.fit import run_fit
 from tests.data.layouts import write_ply
 

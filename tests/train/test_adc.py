@@ -168,7 +168,8 @@ def test_adc_starts_as_3dgs_unless_given():
 
 def test_a_given_budget_caps_adc_and_none_leaves_it_to_memory():
     """An equal-memory comparison (paper Tab. 2) must hold ADC to the budget it was given."""
-    from splatk.stages.fit_config import bytes_per_primitive, fit_config_from_options, max_budget
+    from splatk.stages.fit_config import fit_config_from_options
+    from splatk.stages.fit_memory import bytes_per_primitive, max_budget
     free, _ = fit_config_from_options({"iters": 100, "strategy": "adc"})
     assert free.train.adc.cap_max == max_budget(free) > free.train.budget
     counted, _ = fit_config_from_options({"iters": 100, "strategy": "adc", "budget": 5000})

@@ -35,8 +35,8 @@ from ..train.distributed import SINGLE, World, join, launched_world, leave, loca
 from ..train.trainer import StepInfo, Trainer
 from .auto_settings import resolve_init, train_pixels_per_view
 from .autobudget import AutoBudget, render_psnr, split_holdout
-from .fit_config import (PRIMITIVES, FitConfig, check_fit_config, color_options as _color_options,
-                         fit_config_from_options)
+from .fit_config import PRIMITIVES, FitConfig, check_fit_config, fit_config_from_options
+from .fit_memory import color_options as _color_options
 from .fit_ranks import Start, agree, receive, settings_mismatch
 from .run_folder import RunFolder, clean_resume_leftovers, record_resume_changes, write_config
 

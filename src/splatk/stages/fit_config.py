@@ -12,8 +12,6 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-import torch
-
 from ..data import EVAL_SPLITS
 from ..errors import InputError
 from ..kernels.auto_k import AUTO_K
@@ -24,6 +22,7 @@ from ..train.adc import ADCConfig
 from ..train.strategies import STRATEGIES
 from ..train.trainer import MCMC_FIELDS, TrainConfig
 from .autobudget import AutoBudgetConfig
+from .fit_memory import bytes_per_primitive, color_options, max_budget, train_bytes_per_primitive
 from .fit_ranks import check_processes, process_options
 from .run_length import run_fraction, scale_to_run_length
 
@@ -283,21 +282,6 @@ def _read_count(name: str, given, text, sources: dict) -> int:
     return int(value)
 
 
-def bytes_per_primitive(cfg: FitConfig) -> tuple[int, int]:
-    """(bytes per primitive, bytes of the global networks) of the model `fit` builds with ``cfg``,
-    counted from the model itself: 4 x ``floats_per_primitive()`` and 4 x network parameters."""
-    from ..models.planar import PlanarModel
-    from ..models.volumetric import SplatModel
-
-    model_class = PlanarModel if cfg.primitive == "planar" else SplatModel
-    options = dict(cfg.kernel_options)
-    if options.get("k") == AUTO_K:
-        options["k"] = 2  # k does not change the bytes (the samples are decoded per view)
-    model = model_class.from_points(torch.zeros(1, 3), torch.zeros(1, 3), kernel=cfg.kernel, color=cfg.color,
-                                    kernel_options=options, color_options=color_options(cfg))
-    return 4 * model.floats_per_primitive(), 4 * sum(p.numel() for p in model.kernel.parameters())
-
-
 def _read_k(value, sources: dict):
     """``--k``: a whole number, or ``auto`` (resolved when the scene is loaded)."""
     text = value.strip().lower() if isinstance(value, str) else None
@@ -309,17 +293,7 @@ def _read_k(value, sources: dict):
     return int(text)
 
 
-def color_options(cfg: FitConfig) -> dict:
-    return {"sh_degree": cfg.sh_degree} if cfg.color == "sh" else {"num_lobes": cfg.sb_lobes}
-
-
 # ---- the schema ----------------------------------------------------------------------------------
-#: training memory per float of a primitive's parameters, an upper estimate: the parameter, its
-#: gradient and Adam's two moments take 16 bytes; the rest covers the projected copies, the
-#: rollback snapshot, the checkpoint being written and the rasteriser's per-pixel lists
-TRAIN_BYTES_PER_FLOAT = 50
-#: a fit may plan on at most this share of the machine's memory
-MEMORY_SHARE = 0.5
 #: the largest thread count accepted: OpenMP starts this many threads per parallel region
 MAX_THREADS = 1024
 
@@ -392,18 +366,6 @@ def _get(cfg: FitConfig, path: str):
     for part in path.split("."):
         obj = getattr(obj, part)
     return obj
-
-
-def train_bytes_per_primitive(cfg: FitConfig) -> int:
-    """Upper estimate of the memory one primitive takes while training with ``cfg``."""
-    floats = 59 if cfg.color == "sh" else 30  # SH degree 3: 48 colour floats; Beta lobes fewer
-    floats += 8  # latents, per-primitive kernel parameters
-    return TRAIN_BYTES_PER_FLOAT * floats
-
-
-def max_budget(cfg: FitConfig) -> int:
-    """The most primitives a fit with ``cfg`` can hold in this machine's memory share."""
-    return max(1, int(MEMORY_SHARE * memory_bytes() / train_bytes_per_primitive(cfg)))
 
 
 def check_fit_config(cfg: FitConfig, sources: dict | str | None = None) -> None:

@@ -23,7 +23,7 @@ from ..errors import InputError
 from ..machine import memory_bytes
 from ..option_rules import BOOL, check_value, choice, float_range, int_range, option_error
 from ..outputs import OutputDir, check_output_dir
-from .fit_config import MEMORY_SHARE
+from .fit_memory import MEMORY_SHARE
 from ..metrics import compute_metrics, lpips_available
 from ..image.bytes import MAX_SHAPES
 from ..image.file import load_splats2d, save_splats2d
