@@ -44,6 +44,18 @@ def test_any_option_values_give_a_config_or_one_input_error(opts):
         assert e.message() and "\n" not in e.message()
 
 
+def test_every_setting_a_preset_names_is_checked():
+    """Each flat setting has a rule, or is checked by building what it names; a setting with
+    neither reaches training as given (``relocate_one_view: maybe`` once did)."""
+    from splatk.stages.fit_config import _FIT_FIELDS, _TRAIN_FIELDS
+
+    checked_by_building = {"adc", "backend", "background", "device", "kernel", "kernel_options"}
+    assert (_FIT_FIELDS | _TRAIN_FIELDS) - {name for _, name, _ in RULES} - checked_by_building == set()
+    for name in ("relocate_one_view", "hold_growth", "random_background"):
+        with pytest.raises(InputError, match=name.replace("_", "-")):
+            check_fit_config(fit_config_from_options({name: "maybe"}, {name: "preset test.yaml"})[0])
+
+
 def tree_digest(folder: Path) -> str:
     h = hashlib.sha256()
     for p in sorted(folder.rglob("*")):
