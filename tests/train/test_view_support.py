@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from splatk import backends
@@ -72,6 +73,13 @@ def test_one_view_primitives_leaves_out_what_one_camera_alone_sees_and_view_inde
     assert not bool(one_view_primitives(model, backend, cams)[0])
     model, cams, backend = _model_and_cameras("gaussian")
     assert not one_view_primitives(model, backend, cams).any()  # no view dependence: never
+    assert not one_view_primitives(model, None, cams).any()  # ... so it draws nothing
+
+
+def test_one_view_primitives_of_a_learned_model_need_the_ops_that_draw_the_views():
+    model, cams, _ = _model_and_cameras("learned")
+    with pytest.raises(ValueError, match="backend"):
+        one_view_primitives(model, None, cams)
 
 
 @torch.no_grad()

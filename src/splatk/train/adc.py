@@ -75,7 +75,7 @@ class ADCStrategy(Strategy):
     statistics = {"grad_sum": "sum", "seen": "sum", "max_radii": "max"}
 
     @classmethod
-    def from_train_config(cls, config, scene) -> "ADCStrategy":
+    def from_train_config(cls, config, scene, backend=None) -> "ADCStrategy":
         white = not config.random_background and all(float(c) == 1.0 for c in scene.background)
         return cls(config.adc, scene.extent, white_background=white)
 

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import torch
 
-from .. import backends
 from ..functional.projection import covariances_3d
 from .optim import PrimitiveAdam
 from .strategies import Strategy, register_strategy
@@ -72,22 +71,18 @@ class MCMCStrategy(Strategy):
     name = "mcmc"
 
     @classmethod
-    def from_train_config(cls, config, scene) -> "MCMCStrategy":
-        # its own ops only when it needs them: the trainer resolves the run's backend once
-        backend = (backends.get(config.backend, torch.device(config.device))
-                   if config.mcmc.relocate_one_view else None)
+    def from_train_config(cls, config, scene, backend) -> "MCMCStrategy":
         return cls(config.mcmc, cap_max=config.budget, views=scene.train, backend=backend)
 
     def __init__(self, config: MCMCConfig, cap_max: int = 100_000, views=(), backend=None):
         # checked here, not at the first refine step hundreds of iterations into a run
         if config.split_scales not in ("keep", "shrink"):
             raise ValueError(f"split_scales must be keep or shrink, got {config.split_scales!r}")
-        if config.relocate_one_view and backend is None:
-            raise ValueError("relocate_one_view needs the ops (backend) that draw the train views")
         self.cfg = config
         #: the most primitives growth may reach (the run's budget; --budget auto moves it)
         self.cap_max = cap_max
-        #: the train cameras and ops that find one-view primitives (``relocate_one_view``)
+        #: the train cameras and the ops that draw them, to find one-view primitives
+        #: (``relocate_one_view``; a kernel whose profile does not depend on the view needs neither)
         self.views, self.backend = list(views), backend
         self.last_stats: dict = {}
 

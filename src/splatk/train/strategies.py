@@ -19,9 +19,9 @@ class Strategy:
     statistics: dict[str, str] = {}
 
     @classmethod
-    def from_train_config(cls, config, scene) -> "Strategy":
-        """The strategy ``config`` (a TrainConfig) asks for, for ``scene`` (its extent and
-        background)."""
+    def from_train_config(cls, config, scene, backend) -> "Strategy":
+        """The strategy ``config`` (a TrainConfig) asks for, for ``scene`` (its extent, background
+        and train views), drawing with the run's ``backend`` where it renders."""
         raise NotImplementedError
 
     def observe(self, it: int, model, render, camera) -> None:
@@ -54,8 +54,8 @@ def register_strategy(cls: type[Strategy]) -> type[Strategy]:
     return cls
 
 
-def make_strategy(config, scene) -> Strategy:
+def make_strategy(config, scene, backend) -> Strategy:
     if config.strategy not in STRATEGIES:
         raise ValueError(f"unknown density control {config.strategy!r}; choose from {', '.join(sorted(STRATEGIES))}")
-    return STRATEGIES[config.strategy].from_train_config(config, scene)
+    return STRATEGIES[config.strategy].from_train_config(config, scene, backend)
 

@@ -162,7 +162,7 @@ class Trainer:
         self.view_gen = torch.Generator().manual_seed(config.seed)
         self.mcmc_gen = torch.Generator(device=self.device).manual_seed(config.seed + 1)
         self.view_queue: list[int] = []
-        self.strategy = make_strategy(config, scene)
+        self.strategy = make_strategy(config, scene, self.backend)
         self.geometry_terms = GeometryTerms(config.normal_weight, config.normal_from, config.distortion_weight,
                                             config.distortion_from)
         if (config.normal_weight > 0 or config.distortion_weight > 0) and getattr(model, "primitive", None) != "planar":

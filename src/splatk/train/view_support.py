@@ -61,4 +61,6 @@ def one_view_primitives(model, backend, cameras) -> torch.Tensor:
     not depend on the view, and for planar primitives, whose profile is a grid)."""
     if not (isinstance(model, SplatModel) and model.kernel.needs_view) or len(cameras) == 0:
         return torch.zeros(model.num_primitives, dtype=torch.bool, device=model.prims["means"].device)
+    if backend is None:
+        raise ValueError("finding one-view primitives draws the train views: give the ops (backend) that draw them")
     return one_view_mask(effective_peaks(model, backend, cameras))
