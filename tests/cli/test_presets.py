@@ -141,7 +141,8 @@ def test_python_run_fit_trains_as_the_command_does(tmp_path):
 
 def test_config_files_of_older_runs_still_load():
     """A run folder written before MCMC's settings moved under train.mcmc (and before the
-    run-length switches were settings) still loads for --resume."""
+    run-length switches were settings) still loads for --resume, and goes on without
+    relocate_one_view, which it trained without."""
     from splatk.stages.autobudget import AutoBudgetConfig
     from splatk.stages.fit_config import FitConfig
 
@@ -154,4 +155,5 @@ def test_config_files_of_older_runs_still_load():
     old["auto_budget"] = {"selection": "short_runs", "paired": True, "refit": True, "return_holdout": True}
     cfg = FitConfig.from_dict(old)
     assert cfg.train.mcmc.refine_every == 7 and cfg.train.mcmc.noise_lr == 5e4
+    assert FitConfig().train.mcmc.relocate_one_view and not cfg.train.mcmc.relocate_one_view
     assert cfg.auto_budget == AutoBudgetConfig() and cfg.scale_schedules

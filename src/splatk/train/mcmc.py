@@ -9,6 +9,10 @@ also shrinks the copies' scales by 3DGS-MCMC's Eq. 9 (:func:`split_scale_factor`
 Gaussians), so that the N stacked copies draw what the source drew instead of a fatter blob. Over
 two seeds per scene (docs/decisions/0003-mcmc-split-scales-keep.md) its effect on test PSNR was
 within the seed-to-seed spread, so the default stays DBS's.
+
+Dead also counts, for a view-dependent kernel, a primitive that one train view draws while the
+other train views that see it switch it off (``relocate_one_view``, on by default; not in DBS;
+:mod:`splatk.train.view_support`, docs/decisions/0113).
 """
 from __future__ import annotations
 
@@ -39,9 +43,8 @@ class MCMCConfig:
     #: would add (see :meth:`MCMCStrategy.step`)
     hold_growth: bool = True
     #: a view-dependent kernel's primitives that one train view draws and the others that see
-    #: them switch off count as dead; off until validated
-    #: (:mod:`splatk.train.view_support`, docs/decisions/0113)
-    relocate_one_view: bool = False
+    #: them switch off count as dead (:mod:`splatk.train.view_support`, docs/decisions/0113)
+    relocate_one_view: bool = True
 
 
 #: 3DGS-MCMC's binomial table stops at 51 copies (gsplat RelocationCUDA.cu n_max)

@@ -115,6 +115,8 @@ class TrainConfig:
         d = dict(d)
         mcmc = dict(d.pop("mcmc", None) or {})
         mcmc.update({k: d.pop(k) for k in MCMC_FIELDS if k in d})
+        # run folders written before it was on by default trained without it; a resume goes on so
+        mcmc.setdefault("relocate_one_view", False)
         adc_settings = d.pop("adc", None) or {}
         return cls(mcmc=MCMCConfig(**mcmc), adc=ADCConfig(**adc_settings), **d)
 
