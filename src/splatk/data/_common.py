@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from .borders import EdgeMeans, edge_means, mask_black_bands
 from .cameras import FLOAT32_SAFE, Intrinsics, Undistorter, scaled
 from .types import Camera
 
@@ -254,19 +255,23 @@ class View:
 
 
 def make_camera(view: View, undistorter: Undistorter, downscale: float, load_images: bool,
-                background: Sequence[float]) -> Camera:
+                background: Sequence[float]) -> tuple[Camera, EdgeMeans | None]:
     """Decode (if ``load_images``), undistort, downscale and wrap ``view`` as a pinhole
-    :class:`Camera`; its mask and alpha channel go through the same warp."""
+    :class:`Camera`; its mask and alpha channel go through the same warp. Beside it, the
+    undistorted image's edge means before the downscale (None without images), for
+    :func:`splatk.data.borders.mask_black_bands`."""
     intr = view.intr
     pin, _ = undistorter.geometry(intr)
     out = scaled(pin, downscale)
-    image = alpha = mask = None
+    image = alpha = mask = edges = None
     if load_images:
         rgb, a = read_image_and_alpha(view.path, background)
         if rgb.shape[:2] != (intr.height, intr.width):  # header and pixels disagree
             raise InputError(view.path, f"decoded image is {rgb.shape[1]}x{rgb.shape[0]}, expected "
                              f"{intr.width}x{intr.height}", "re-copy the image")
-        image = torch.from_numpy(resize(undistorter.apply(rgb, intr), out.width, out.height))
+        full = undistorter.apply(rgb, intr)
+        edges = edge_means(full) if a is None else None  # an RGBA image's edge is its background
+        image = torch.from_numpy(resize(full, out.width, out.height))
         if a is not None:
             alpha = torch.from_numpy(resize(undistorter.apply(a, intr), out.width, out.height))
         if view.mask_path is not None:
@@ -276,7 +281,17 @@ def make_camera(view: View, undistorter: Undistorter, downscale: float, load_ima
             mask = torch.from_numpy(m.astype(bool))
     return Camera(name=view.name, width=out.width, height=out.height, fx=out.fx, fy=out.fy, cx=out.cx, cy=out.cy,
                   world_to_cam=torch.from_numpy(np.asarray(view.world_to_cam, dtype=np.float32).copy()),
-                  image=image, image_path=view.path, mask=mask, alpha=alpha)
+                  image=image, image_path=view.path, mask=mask, alpha=alpha), edges
+
+
+def make_cameras(views: list[View], undistorter: Undistorter, downscale: float, load_images: bool,
+                 background: Sequence[float], scene_warnings: list[str]) -> list[Camera]:
+    """:func:`make_camera` for every view, then each image size's black border left out of the
+    masks (:mod:`splatk.data.borders`; a warning says where)."""
+    made = [make_camera(view, undistorter, downscale, load_images, background) for view in views]
+    cams = [c for c, _ in made]
+    mask_black_bands(cams, [e for _, e in made], scene_warnings)
+    return cams
 
 
 # ----------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import torch
 
 from ..errors import InputError
 from ._common import (View, check_downscale, check_image_file, check_translation, has_control_characters, image_size,
-                      is_inside, make_camera, rigid_or_none, split_every)
+                      is_inside, make_cameras, rigid_or_none, split_every)
 from .cameras import FLOAT32_SAFE, Intrinsics, Undistorter, fisheye_intrinsics, pinhole
 from .downscaled import use_downscaled
 from .types import Scene
@@ -369,8 +369,9 @@ def load_colmap(root: str | Path, downscale: float = 1.0, test_every: int = 8,
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3))
 
     # 2. decode, undistort, downscale
-    cams = [make_camera(view, und, downscale, load_images, background) for view in views]
+    warnings: list[str] = []
+    cams = make_cameras(views, und, downscale, load_images, background, warnings)
     train, test = split_every(cams, test_every)
     return Scene(root=root, train=train, test=test,
                  points=torch.from_numpy(xyz.astype(np.float32)), point_colors=torch.from_numpy(rgb.astype(np.float32)),
-                 background=tuple(float(b) for b in background), source="colmap")
+                 background=tuple(float(b) for b in background), source="colmap", warnings=warnings)

@@ -23,7 +23,7 @@ import torch
 
 from ..errors import InputError
 from ._common import (View, check_downscale, check_image_file, check_translation, has_control_characters, image_size,
-                      is_inside, make_camera, resolve_image, rigid_or_none, split_every)
+                      is_inside, make_cameras, resolve_image, rigid_or_none, split_every)
 from .cameras import Intrinsics, Undistorter, fisheye_intrinsics, pinhole
 from .downscaled import use_downscaled
 from .ply import read_ply_points
@@ -297,7 +297,7 @@ def load_transforms(root: str | Path, downscale: float = 1.0, test_every: int = 
     xyz, rgb = _points(files, docs)
 
     # 2. decode, undistort, downscale
-    cams = [make_camera(view, und, remaining, load_images, background) for view in views]
+    cams = make_cameras(views, und, remaining, load_images, background, warnings)
     return Scene(root=root, train=cams[:len(train_f)], test=cams[len(train_f):], background=background,
                  points=torch.from_numpy(xyz.astype(np.float32)), point_colors=torch.from_numpy(rgb.astype(np.float32)),
                  source="transforms", warnings=warnings)
