@@ -115,7 +115,9 @@ def command(ctx, scene, out, preset, resume, overwrite, quiet, log_every, **opts
     Every camera is undistorted to a pinhole. --downscale N (a whole number) reads images_N/
     beside images/ when it exists, scaling the intrinsics by the actual size ratio; an image
     there that is not 1/N of its original is an error naming the folder. A dataset field splatk
-    does not read is named in a warning.
+    does not read is named in a warning. Edge rows or columns black in every image (video
+    padding, letterboxing) and the row beside them leave the loss and the metrics, with a
+    warning that names them.
 
     RUN/train_log.jsonl gets a JSON line every 100 iterations and at every training event, with
     the fields it (iteration), loss (training loss), psnr (PSNR in dB of that iteration's training
