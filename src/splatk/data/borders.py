@@ -4,7 +4,7 @@ Video frames padded to a coded size (1080 lines stored as 1088), letterboxing an
 leave a band of black along an image edge. It is the same in every view, so it is not the
 scene: a model that fits it spends primitives on a black line that follows the camera, and a
 test view scores mostly on where that line lands (juicebox's black last row moved its test views
-by 2-8 dB, decision 0114). splatk leaves such a band out of the training loss and the metrics,
+by 0.4-8 dB, decision 0114). splatk leaves such a band out of the training loss and the metrics,
 as a dataset mask would, and says so in the scene's warnings.
 
 A row is black when its mean, over its pixels and channels, is at most :data:`BLACK` in every
