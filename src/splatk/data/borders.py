@@ -43,8 +43,8 @@ class EdgeMeans:
 
 
 def edge_means(image: np.ndarray) -> EdgeMeans:
-    """:class:`EdgeMeans` of an [H, W, C] uint8 image, over its outer :data:`MAX_FRACTION` + 1
-    rows and columns on each side."""
+    """:class:`EdgeMeans` of an [H, W, C] uint8 image: on each side, the outer
+    :data:`MAX_FRACTION` of its rows (columns) and two more, enough to see a band end."""
     h, w = image.shape[:2]
     rows = image.reshape(h, -1).mean(1) / 255.0
     cols = image.transpose(1, 0, 2).reshape(w, -1).mean(1) / 255.0
@@ -58,10 +58,10 @@ def black_band(means: list[EdgeMeans]) -> dict[str, int]:
     a black edge row."""
     band = {}
     for edge in EDGES:
-        darkest = np.max(np.stack([getattr(m, edge) for m in means]), axis=0)  # brightest image, per row
+        brightest = np.max(np.stack([getattr(m, edge) for m in means]), axis=0)  # over the images, per row
         size = means[0].height if edge in ("top", "bottom") else means[0].width
-        lit = darkest > BLACK
-        black = int(np.argmax(lit)) if lit.any() else len(darkest)  # black rows from the edge in
+        lit = brightest > BLACK
+        black = int(np.argmax(lit)) if lit.any() else len(brightest)  # black rows from the edge in
         band[edge] = black + 1 if black > 0 and black + 1 <= size * MAX_FRACTION else 0
     return band
 
