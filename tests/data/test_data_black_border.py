@@ -45,7 +45,8 @@ def test_band_is_masked_at_the_downscaled_size(tiny_colmap):
     root = tiny_colmap(size=(40, 30))
     paint(root, bottom=1)
     cam = load_scene(root, test_every=0, downscale=4).cameras[0]
-    # 30 rows to 8: the last output row holds source rows 28-29, and row 6 (source rows 22.5-26.25) none
+    # 30 rows to 8: output row 7 spans source rows 26.25-30, which hold the band (28-29); row 6
+    # spans 22.5-26.25 and holds none of it
     assert (cam.height, masked_rows(cam)) == (8, [7])
 
 
@@ -78,7 +79,7 @@ def test_one_lit_image_keeps_the_row():
 
 def test_band_wider_than_an_eighth_is_the_scene():
     """A dark room, not a border: a run of black rows past 1/8 of the image stays in."""
-    dark = np.zeros(6)  # 5 black rows + the blended one in a 30-row image: past 30 / 8
+    dark = np.zeros(6)  # every row looked at is black: a band of 7 with the blended row, past 30 / 8
     lit = np.full(6, 0.5)
     assert black_band([EdgeMeans(width=40, height=30, top=dark, bottom=lit, left=lit, right=lit)])["top"] == 0
 
