@@ -313,8 +313,9 @@ def _fit(scene_path, out: Path, cfg: FitConfig, state: dict | None, resume_chang
     if resume:
         saved_print = (state.get("meta") or {}).get("scene_fingerprint")
         if saved_print is not None and saved_print != fingerprint:
-            raise InputError(scene_path, "the scene changed since the run started (its images, cameras, masks or points "
-                             "differ from the checkpoint's)", "restore the scene, or start a new run with another --out")
+            raise InputError(scene_path, "the scene changed since the run started (its images, cameras, masks or "
+                             "points differ from the checkpoint's)",
+                             "restore the scene, or start a new run with another --out")
     if not resume:
         chosen = resolve_auto_k(cfg.kernel_options, train_pixels_per_view(scene.train), cfg.train.budget)
         if chosen is not None:
