@@ -11,6 +11,7 @@ from splatk import backends
 from splatk.train.mcmc import MCMCConfig, MCMCStrategy
 from splatk.train.optim import PrimitiveAdam
 from splatk.train.view_support import (
+    FLOOR,
     effective_peaks,
     one_view_mask,
     one_view_primitives,
@@ -109,3 +110,21 @@ def test_mcmc_relocates_the_one_view_primitives_and_no_others(monkeypatch):
         assert torch.equal(moved, found if on else torch.zeros_like(found)), on
         assert strategy.last_stats["relocated"] == (2 if on else 0)
     assert asked == [len(cams)]
+
+
+@torch.no_grad()
+def test_one_view_primitives_draws_only_what_can_reach_the_floor_and_finds_the_same():
+    """d(0) is at most 1, so primitives under FLOOR's opacity are skipped: the mask must be the one
+    the full table gives, over a strongly view-dependent Phi_proj and opacities on both sides."""
+    model, cams, backend = _model_and_cameras("learned")
+    for weight in model.kernel.proj.parameters():
+        weight.mul_(3.0)  # makes d(0) turn with the view: some primitives one view alone draws
+    model.prims["opacity_logits"].data[1:] = torch.linspace(-4.0, 3.0, 39)
+    full = effective_peaks(model, backend, cams)
+    assert torch.equal(effective_peaks(model, backend, cams, torch.tensor([7, 2, 30])).nan_to_num(-1),
+                       full[[7, 2, 30]].nan_to_num(-1))
+    expected = one_view_mask(full)
+    by_ratio_alone = one_view_mask(full, floor=0.0)  # what the opacity cut-off must leave out
+    faint = model.opacities < FLOOR
+    assert expected.any() and (by_ratio_alone & faint).any()
+    assert torch.equal(one_view_primitives(model, backend, cams), expected)
