@@ -15,7 +15,8 @@ every other setting default, under one of two protocols:
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k, ``learned-turn`` with every default and decision
 0108's turn penalty in training (``benchmarks/learned_turn_penalty.py``, a candidate for the 30k
-protocol).
+protocol), ``learned-z1`` with every default and networks pretrained for a 1-float latent z3D
+(``splatk pretrain --latent-dim 1``, made once under OUT/weights; decision 0115).
 
 Forward-facing scenes (``*_frontal``, ``juicebox_arc2``: ``MADE_SCENES``) are made under OUT/scenes
 by ``benchmarks/make_frontal_scene.py`` from a shared 360-degree capture; the others are read from
@@ -80,7 +81,11 @@ KERNELS = {
     "learned-k4": ["--kernel", "learned", "--k", "4"],
     "learned-k8": ["--kernel", "learned", "--k", "8"],
     "learned-turn": ["--kernel", "learned"],  # with decision 0108's turn penalty (learned_turn_penalty.py)
+    "learned-z1": ["--kernel", "learned"],  # with networks pretrained for a 1-float latent (decision 0115)
 }
+#: kernels whose networks are pretrained for the grid: ``splatk pretrain`` options, the weights going
+#: to OUT/weights/KERNEL.pt (made once, then read by every run of that kernel)
+PRETRAIN_OPTIONS = {"learned-z1": ["--latent-dim", "1"]}
 #: kernels fitted by another command than `splatk fit` (it takes the same arguments)
 FIT_COMMANDS = {"learned-turn": [sys.executable, str(HERE / "learned_turn_penalty.py")]}
 
@@ -100,6 +105,19 @@ def scene_path(name: str, out: Path, data: Path = DATA) -> Path:
     return made
 
 
+def pretrained_weights(kernel: str, out: Path) -> list[str]:
+    """``--kernel-weights FILE`` for a kernel of ``PRETRAIN_OPTIONS`` (pretrained here the first
+    time), nothing for the others."""
+    if kernel not in PRETRAIN_OPTIONS:
+        return []
+    weights = out / "weights" / f"{kernel}.pt"
+    if not weights.exists():
+        weights.parent.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["splatk", "pretrain", "-o", str(weights), *PRETRAIN_OPTIONS[kernel], "-q"], check=True,
+                       env=dict(os.environ, OMP_NUM_THREADS="1"))
+    return ["--kernel-weights", str(weights)]
+
+
 def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_only: bool = False,
             device: str = "cpu", data: Path = DATA) -> dict | None:
     run = out / "runs" / (protocol if seed == 0 else f"{protocol}_seed{seed}") / f"{scene}_{kernel}"
@@ -113,7 +131,7 @@ def run_one(scene: str, kernel: str, protocol: str, seed: int, out: Path, table_
             fit = ["--resume"]
         else:
             fit = [str(scene_path(scene, out, data)), "--overwrite", *KERNELS[kernel], *PROTOCOLS[protocol],
-                   "--seed", str(seed)]
+                   "--seed", str(seed), *pretrained_weights(kernel, out)]
         subprocess.run([*FIT_COMMANDS.get(kernel, ["splatk", "fit"]), *fit, "--out", str(run), "--threads", "1",
                         "--device", device, "-q"], check=True, env=env)
         evaluated = subprocess.run(["splatk", "eval", str(run), "--metrics", "psnr", "--json", "--device", device],
@@ -274,6 +292,8 @@ def main() -> None:
     if not args.table_only:
         for scene in scenes:  # made once here: parallel cells of one scene would each make it
             scene_path(scene, args.out, args.data)
+        for kernel in kernels:  # and so are the pretrained networks
+            pretrained_weights(kernel, args.out)
     with ThreadPoolExecutor(args.jobs) as pool:
         rows = [r for r in pool.map(lambda c: run_one(*c, args.protocol, args.seed, args.out, args.table_only,
                                                     args.device, args.data), cells)

@@ -87,6 +87,27 @@ def test_learned_validation_makes_each_scene_once_before_parallel_cells(tmp_path
     assert sorted(fitted) == [("juicebox_arc2", "gaussian"), ("juicebox_arc2", "learned")]
 
 
+def test_learned_validation_pretrains_a_candidates_networks_once_and_fits_with_them(tmp_path, monkeypatch):
+    """learned-z1's cells fit with networks pretrained for a 1-float latent, made once for the grid
+    (two parallel cells each pretraining would write one file twice); the default learned cell
+    fits with the shipped networks."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    calls = []
+
+    def fake_run(cmd, **kwargs):
+        calls.append([str(c) for c in cmd])
+        if cmd[:2] == ["splatk", "pretrain"]:
+            Path(cmd[3]).write_bytes(b"weights")
+
+    monkeypatch.setattr(script.subprocess, "run", fake_run)
+    for _ in range(2):
+        assert script.pretrained_weights("learned-z1", tmp_path) == ["--kernel-weights",
+                                                                     str(tmp_path / "weights" / "learned-z1.pt")]
+    assert script.pretrained_weights("learned", tmp_path) == []
+    pretrains = [c for c in calls if c[:2] == ["splatk", "pretrain"]]
+    assert len(pretrains) == 1 and pretrains[0][4:6] == ["--latent-dim", "1"]
+
+
 def _row(scene, kernel, psnr):
     return {"scene": scene, "kernel": kernel, "set": "validation", "test_psnr": psnr, "train_psnr": psnr + 5,
             "primitives": 10, "k": None, "rollbacks": 0}
