@@ -2,7 +2,7 @@
 30k protocol, where view-dependent colour is off and the kernel's view dependence is the model's
 only one.
 
-    python benchmarks/learned_turn_penalty.py [--weight 1.0] [--degrees 10] FIT_ARGS...
+    python benchmarks/learned_turn_penalty.py [--weight 1.0] [--degrees 10|gap] [--from-gap DEG] FIT_ARGS...
 
 runs ``splatk fit FIT_ARGS...`` (a new run or ``--resume``) with, at every training step, each
 visible primitive's profile table also computed with the primitive turned by ``--degrees`` about
@@ -11,6 +11,12 @@ difference of the two tables joins the step's loss. The penalty reaches the late
 networks, not the geometry (its inputs are detached: it is to shape the kernel's response to a
 turn, not to move, turn or shrink primitives). Rendering, evaluation and the saved model are
 splatk's own: only training changes, and the settings go to the run's ``turn_penalty.json``.
+
+``--degrees gap`` turns by the scene's **train-view gap**: the median, over the train views, of the
+angle between a view's direction and that of the train camera whose centre is nearest
+(:func:`train_view_gap`), so a primitive is asked to keep its profile across the span a novel view
+between the train cameras lies in. With ``--from-gap DEG`` there is no penalty (and training is the
+default's, step for step) where that gap is under DEG degrees (decision 0116).
 
 ``benchmarks/learned_validation.py --kernels learned-turn`` runs it as a cell beside the Gaussian
 and the default learned kernel.
@@ -33,6 +39,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
+import statistics
 import sys
 from pathlib import Path
 
@@ -45,14 +53,33 @@ from splatk.kernels.learned import LearnedKernel
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from learned_view_dependence import random_rotations  # noqa: E402  (the turn its measurement uses)
 
+#: ``--degrees``' value that turns by the scene's train-view gap
+GAP = "gap"
+
+
+def train_view_gap(cameras) -> float:
+    """Median over ``cameras`` of the angle (degrees) between a camera's viewing direction and that
+    of the other camera whose centre is nearest; 0 for fewer than two cameras."""
+    if len(cameras) < 2:
+        return 0.0
+    rots = torch.stack([c.world_to_cam[:3, :3].double() for c in cameras])
+    ts = torch.stack([c.world_to_cam[:3, 3].double() for c in cameras])
+    centres, directions = -(rots.transpose(1, 2) @ ts[:, :, None])[:, :, 0], rots[:, 2]
+    distances = torch.cdist(centres, centres).fill_diagonal_(float("inf"))
+    nearest = distances.argmin(1)
+    cosines = (directions * directions[nearest]).sum(1).clamp(-1.0, 1.0)
+    return statistics.median(math.degrees(math.acos(float(c))) for c in cosines)
+
 
 class TurnPenalty:
     """Collects the learned kernel's profile inputs of a training step's renders (a wrapped
     ``LearnedKernel.profile``) and adds their turn change to the step's regularisers (a wrapped
     ``regularisers`` of the trainer)."""
 
-    def __init__(self, weight: float, degrees: float, seed: int = 0):
-        self.weight, self.degrees = weight, degrees
+    def __init__(self, weight: float, degrees: float | str, seed: int = 0, from_gap: float = 0.0):
+        self.weight, self.degrees, self.from_gap = weight, degrees, from_gap
+        #: the scene's train-view gap, once training has begun (``--degrees gap``)
+        self.gap: float | None = None
         self.generator = torch.Generator().manual_seed(seed)
         self.views: list[tuple[LearnedKernel, torch.Tensor | None, ViewContext]] = []
 
@@ -64,13 +91,27 @@ class TurnPenalty:
         turned = kernel.samples(kernel.project(z3d, ViewContext(means, scales, turns @ rotmats, None)))
         return (table - turned).square().mean()
 
+    def set_scene(self, scene) -> None:
+        """Resolve ``--degrees gap`` from the train views; under ``from_gap`` the penalty is off."""
+        if self.degrees != GAP:
+            return
+        self.gap = train_view_gap(scene.train)
+        self.degrees = self.gap
+        if self.gap < self.from_gap:
+            self.weight = 0.0
+
     @contextlib.contextmanager
     def installed(self):
         """Within the block, training adds the penalty to every step's loss."""
         profile, regularisers = LearnedKernel.profile, trainer_module.regularisers
+        trainer_init = trainer_module.Trainer.__init__
+
+        def reading_scene(trainer, scene, *args, **kwargs):
+            self.set_scene(scene)
+            trainer_init(trainer, scene, *args, **kwargs)
 
         def collecting_profile(kernel, prims, view):
-            if torch.is_grad_enabled() and view.means_cam is not None and len(view.means_cam):
+            if self.weight > 0 and torch.is_grad_enabled() and view.means_cam is not None and len(view.means_cam):
                 self.views.append((kernel, prims.get("z3d"), view))
             return profile(kernel, prims, view)
 
@@ -82,11 +123,17 @@ class TurnPenalty:
             return loss
 
         LearnedKernel.profile, trainer_module.regularisers = collecting_profile, with_turn_penalty
+        trainer_module.Trainer.__init__ = reading_scene
         try:
             yield self
         finally:
             LearnedKernel.profile, trainer_module.regularisers = profile, regularisers
+            trainer_module.Trainer.__init__ = trainer_init
             self.views = []
+
+
+def degrees_or_gap(text: str) -> float | str:
+    return GAP if text == GAP else float(text)
 
 
 def out_folder(fit_args: list[str]) -> Path | None:
@@ -97,13 +144,16 @@ def main() -> None:
     # no abbreviations: every other option is splatk fit's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     ap.add_argument("--weight", type=float, default=1.0)
-    ap.add_argument("--degrees", type=float, default=10.0)
+    ap.add_argument("--degrees", type=degrees_or_gap, default=10.0, help="a turn in degrees, or 'gap'")
+    ap.add_argument("--from-gap", type=float, default=0.0,
+                    help="with --degrees gap: no penalty where the train-view gap is under this many degrees")
     args, fit_args = ap.parse_known_args()
     from splatk._malloc import tune_malloc
     from splatk_cli.main import cli
 
     tune_malloc()
-    with TurnPenalty(args.weight, args.degrees).installed():
+    penalty = TurnPenalty(args.weight, args.degrees, from_gap=args.from_gap)
+    with penalty.installed():
         try:
             cli.main(["fit", *fit_args], prog_name="splatk")
             code = 0
@@ -111,7 +161,9 @@ def main() -> None:
             code = stop.code
     out = out_folder(fit_args)
     if out is not None and (out / "config.yaml").exists():  # a run began: finished or stopped part-way
-        (out / "turn_penalty.json").write_text(json.dumps({"weight": args.weight, "degrees": args.degrees}))
+        (out / "turn_penalty.json").write_text(json.dumps({
+            "weight": penalty.weight, "degrees": penalty.degrees, "asked": {"weight": args.weight,
+            "degrees": args.degrees, "from_gap": args.from_gap}, "train_view_gap": penalty.gap}))
     sys.exit(code)
 
 

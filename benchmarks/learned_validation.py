@@ -15,7 +15,8 @@ every other setting default, under one of two protocols:
 Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k auto``, decision
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k, ``learned-turn`` with every default and decision
 0108's turn penalty in training (``benchmarks/learned_turn_penalty.py``, a candidate for the 30k
-protocol), ``learned-z1`` with every default and networks pretrained for a 1-float latent z3D
+protocol), ``learned-turn-gap`` with that penalty turning by the scene's train-view gap and only
+where the gap is at least 5 degrees (decision 0116), ``learned-z1`` with every default and networks pretrained for a 1-float latent z3D
 (``splatk pretrain --latent-dim 1``, made once under OUT/weights; decision 0115).
 
 Forward-facing scenes (``*_frontal``, ``juicebox_arc2``: ``MADE_SCENES``) are made under OUT/scenes
@@ -81,13 +82,16 @@ KERNELS = {
     "learned-k4": ["--kernel", "learned", "--k", "4"],
     "learned-k8": ["--kernel", "learned", "--k", "8"],
     "learned-turn": ["--kernel", "learned"],  # with decision 0108's turn penalty (learned_turn_penalty.py)
+    "learned-turn-gap": ["--kernel", "learned"],  # the turn penalty by the train-view gap (decision 0116)
     "learned-z1": ["--kernel", "learned"],  # with networks pretrained for a 1-float latent (decision 0115)
 }
 #: kernels whose networks are pretrained for the grid: ``splatk pretrain`` options, the weights going
 #: to OUT/weights/KERNEL.pt (made once, then read by every run of that kernel)
 PRETRAIN_OPTIONS = {"learned-z1": ["--latent-dim", "1"]}
 #: kernels fitted by another command than `splatk fit` (it takes the same arguments)
-FIT_COMMANDS = {"learned-turn": [sys.executable, str(HERE / "learned_turn_penalty.py")]}
+FIT_COMMANDS = {"learned-turn": [sys.executable, str(HERE / "learned_turn_penalty.py")],
+                "learned-turn-gap": [sys.executable, str(HERE / "learned_turn_penalty.py"),
+                                     "--degrees", "gap", "--from-gap", "5"]}
 
 
 def set_of(scene: str) -> str:
