@@ -259,6 +259,40 @@ def test_turn_penalty_joins_the_loss_of_training_renders_only():
     assert trainer_module.regularisers is plain_regularisers
 
 
+def test_turn_penalty_by_the_train_view_gap_turns_by_it_and_is_off_under_its_floor():
+    """Cameras 30 degrees apart on a ring looking at its centre have a train-view gap of 30 degrees
+    (an uneven ring: the median); ``--degrees gap`` turns by it, and where the gap is under
+    ``--from-gap`` the penalty adds nothing to training."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_turn_penalty"))
+    import splatk.train.trainer as trainer_module
+    from splatk.data.types import Camera
+    from tests.scenes import look_at
+
+    def ring(azimuths_deg):
+        return [Camera(f"v{i}.png", 32, 32, 30.0, 30.0, 16.0, 16.0,
+                       look_at((4 * math.cos(math.radians(a)), 4 * math.sin(math.radians(a)), 0.0)))
+                for i, a in enumerate(azimuths_deg)]
+
+    assert math.isclose(script.train_view_gap(ring(range(0, 360, 30))), 30.0, abs_tol=1e-3)
+    # azimuths 0, 10, 20 and 40: each camera's nearest is 10, 10, 10 and 20 degrees away
+    assert math.isclose(script.train_view_gap(ring([0, 10, 20, 40])), 10.0, abs_tol=1e-3)
+    assert script.train_view_gap(ring([0])) == 0.0
+
+    scene = type("Scene", (), {"train": ring(range(0, 360, 30))})()
+    model = random_model(40, seed=3, kernel="learned")
+    model.prims["z3d"].data[:] = 2.0 * torch.randn(40, model.kernel.latent_dim,
+                                                   generator=torch.Generator().manual_seed(0))
+    cam, backend, bg = orbit_cameras(4, size=32)[0], backends.get("torch"), torch.zeros(3)
+    for from_gap, on in ((20.0, True), (40.0, False)):
+        penalty = script.TurnPenalty(1.0, script.GAP, from_gap=from_gap)
+        penalty.set_scene(scene)
+        assert math.isclose(penalty.degrees, 30.0, abs_tol=1e-3) and (penalty.weight == 1.0) is on
+        with penalty.installed():
+            model.render(cam, bg, backend=backend)
+            added = float(trainer_module.regularisers(model, 0.0, 0.0).detach())
+        assert (added > 1e-8) is on, added
+
+
 def test_kernel_table_measures_learned_against_the_best_analytic_kernel(tmp_path, monkeypatch, capsys):
     """3DGS-ADC and `--k auto` get their own rows; Tab. 2's count takes the best analytic kernel
     of a scene (here ADC on one scene, Beta on the other) and only scenes where all four ran."""
