@@ -51,6 +51,7 @@ from splatk.kernels import ViewContext
 from splatk.kernels.learned import LearnedKernel
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gap_by_view_distance import camera_pose  # noqa: E402
 from learned_view_dependence import random_rotations  # noqa: E402  (the turn its measurement uses)
 
 #: ``--degrees``' value that turns by the scene's train-view gap
@@ -62,9 +63,9 @@ def train_view_gap(cameras) -> float:
     of the other camera whose centre is nearest; 0 for fewer than two cameras."""
     if len(cameras) < 2:
         return 0.0
-    rots = torch.stack([c.world_to_cam[:3, :3].double() for c in cameras])
-    ts = torch.stack([c.world_to_cam[:3, 3].double() for c in cameras])
-    centres, directions = -(rots.transpose(1, 2) @ ts[:, :, None])[:, :, 0], rots[:, 2]
+    poses = [camera_pose(c) for c in cameras]
+    centres = torch.stack([centre for centre, _ in poses]).double()
+    directions = torch.stack([direction for _, direction in poses]).double()
     distances = torch.cdist(centres, centres).fill_diagonal_(float("inf"))
     nearest = distances.argmin(1)
     cosines = (directions * directions[nearest]).sum(1).clamp(-1.0, 1.0)
