@@ -51,7 +51,7 @@ from splatk.kernels import ViewContext
 from splatk.kernels.learned import LearnedKernel
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gap_by_view_distance import camera_pose  # noqa: E402
+from gap_by_view_distance import camera_pose
 from learned_view_dependence import random_rotations  # noqa: E402  (the turn its measurement uses)
 
 #: ``--degrees``' value that turns by the scene's train-view gap
