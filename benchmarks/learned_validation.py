@@ -16,8 +16,9 @@ Kernel ``learned`` is the learned kernel with every default (k chosen by ``--k a
 0105), ``learned-k2`` / ``-k4`` / ``-k8`` with that k, ``learned-turn`` with every default and decision
 0108's turn penalty in training (``benchmarks/learned_turn_penalty.py``, a candidate for the 30k
 protocol), ``learned-turn-gap`` with that penalty turning by the scene's train-view gap and only
-where the gap is at least 5 degrees (decision 0116), ``learned-z1`` with every default and networks pretrained for a 1-float latent z3D
-(``splatk pretrain --latent-dim 1``, made once under OUT/weights; decision 0115).
+where the gap is at least 5 degrees (decision 0116), ``learned-z1`` with every default and
+networks pretrained for a 1-float latent z3D (``splatk pretrain --latent-dim 1``, made once under
+OUT/weights; decision 0115).
 
 Forward-facing scenes (``*_frontal``, ``juicebox_arc2``: ``MADE_SCENES``) are made under OUT/scenes
 by ``benchmarks/make_frontal_scene.py`` from a shared 360-degree capture; the others are read from
