@@ -32,7 +32,8 @@ view-dependent colour, if the mean of the two scenes' seed-mean changes is at le
 is below -0.3 dB. 7k cells are reported and do not decide.
 
 Outcome: rejected in tuning (cup and juicebox_frontal lost 0.47 dB on average); decision 0108's
-last section has the cells.
+last section has the cells. ``--degrees gap --from-gap 5`` (decision 0116): passed tuning and was
+rejected in validation (kangaroo +0.75 dB against the default, beer_can -0.74).
 """
 from __future__ import annotations
 
