@@ -10,7 +10,8 @@ from splatk.stages.fit_config import fit_config_from_options
 
 
 @pytest.mark.parametrize("pixels, budget, k", [
-    (534_000, 328_000, 8),     # Tanks & Temples at the paper's smallest budget (1.6 px per primitive)
+    (534_000, 328_000, 4),     # Tanks & Temples at the paper's smallest budget (1.6 px per primitive):
+                               # the paper's k = 8; k = 4 measured better in splatk there (decision 0117)
     (534_000, 657_000, 4),     # ... middle budget (0.8)
     (534_000, 1_320_000, 2),   # ... largest budget (0.4)
     (90_000, 20_000, 2),       # 400x225 views, 20k primitives: k = 4 and 8 measured worse there
@@ -53,9 +54,9 @@ def test_fit_with_k_auto_records_the_chosen_k(tmp_path):
 
     scene = make_demo_scene(tmp_path / "scene", num_views=6, size=24)
     run = tmp_path / "run"
-    # 24 x 24 = 576 pixels per view: 400 primitives give 1.44 per primitive (k = 8), 900 give 0.64
-    # (k = 4), 60 give 9.6 (k = 2)
-    for budget, expected, k_flag in ((400, 8, ["--k", "auto"]), (900, 4, []), (60, 2, ["--k", "auto"])):
+    # 24 x 24 = 576 pixels per view: 400 primitives give 1.44 per primitive (k = 4), 1000 give 0.576
+    # (k = 2), 60 give 9.6 (k = 2)
+    for budget, expected, k_flag in ((400, 4, ["--k", "auto"]), (1000, 2, []), (60, 2, ["--k", "auto"])):
         res = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(run), "--kernel", "learned", *k_flag,
                                        "--budget", str(budget), "--iters", "4", "--threads", "1",
                                        "--backend", "torch", "--overwrite", "-q"])
