@@ -150,7 +150,8 @@ def main() -> None:
             print(f"  {v['view'][-32:]:<32} {shown:>6} {v['near_primitives']:>6} {v['near_alpha']:>11.3f} "
                   f"{v['near_switched_alpha']:>15.3f} {v['psnr_on_black']:>9.2f} "
                   f"{v['psnr_on_black_without_switched']:>13.2f} {v['brighter_than_in_train']:>9} "
-                  f"{v['close_primitives']:>6} {v['psnr_on_background']:>6.2f} {v['psnr_on_background_without_close']:>10.2f}")
+                  f"{v['close_primitives']:>6} {v['psnr_on_background']:>6.2f} "
+                  f"{v['psnr_on_background_without_close']:>10.2f}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 
