@@ -17,10 +17,15 @@ For each run (a `splatk fit` folder with its model.pt), with the scene loaded as
   background, so it can differ from eval's figure), and the number of primitives whose d(0) in
   the test view is above their highest in any train view by more than 0.2 (Phi_proj
   extrapolating to the new view).
-* **close**: the primitives whose centre is nearer the camera than 3x their largest scale (there
-  EWA splatting's first-order projection spreads a primitive far beyond its true footprint), how
-  many there are in the test view and in the median train view, and the PSNR of each view on the
-  scene's background with them left out, beside the same render with them in.
+* **close**: the primitives whose centre is nearer the camera than 3x their support radius (the
+  kernel's support in sigmas times the largest scale: there EWA splatting's first-order
+  projection spreads a primitive far beyond its true footprint), how many there are in the test
+  view and in the median train view, and the PSNR of each view on the scene's background with
+  them left out, beside the same render with them in.
+* **close to a train camera**: of a test view's close primitives, how many are close to a train
+  camera too and hold none (`splatk.train.near_cameras`: what MCMC's ``relocate_near_cameras``
+  relocates, all a rule acting in training can see), and the test view's PSNR on the background
+  with every primitive of that kind left out.
 
 Prints a table per run and, with ``--json``, writes every figure.
 """
@@ -37,6 +42,7 @@ from splatk.data import load_scene
 from splatk.kernels.base import ViewContext
 from splatk.metrics import psnr
 from splatk.models.io import load_model
+from splatk.train.near_cameras import CLOSE_SUPPORTS, close_to_cameras
 
 #: "near": nearer than this fraction of the visible primitives' median depth
 NEAR_FRACTION = 0.25
@@ -44,8 +50,6 @@ NEAR_FRACTION = 0.25
 OFF, ON = 0.1, 0.9
 #: d(0) in a test view this far above its highest in the train views: a new brightness
 BRIGHTER = 0.2
-#: "close": centre depth below this many times the primitive's largest scale
-CLOSE_SCALES = 3.0
 
 
 def centres(model, backend, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -85,10 +89,12 @@ def psnr_without(model, backend, cam, drop: torch.Tensor, background: torch.Tens
 
 
 def close(model, cam) -> torch.Tensor:
-    """The primitives whose centre is in front of the camera and nearer than CLOSE_SCALES x their
-    largest scale."""
+    """The primitives whose centre is in front of the camera and nearer than CLOSE_SUPPORTS x their
+    support radius. The radius, not the scale, so that kernels of different support (the
+    Gaussian's 3 sigma, the learned kernel's 1) compare at the same footprint."""
     depth = (model.prims["means"] @ cam.world_to_cam[:3, :3].T + cam.world_to_cam[:3, 3])[:, 2]
-    return (depth > 0) & (depth < CLOSE_SCALES * model.scales.max(dim=1).values)
+    radius = model.kernel.support_sigmas * model.scales.max(dim=1).values
+    return (depth > 0) & (depth < CLOSE_SUPPORTS * radius)
 
 
 @torch.no_grad()
@@ -111,6 +117,7 @@ def analyse(run: Path, scene_path: Path | None) -> dict:
         eval_psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
     background = torch.tensor(scene.background, dtype=torch.float32)
     close_in_train = sorted(int(close(model, cam).sum()) for cam in scene.train)
+    close_to_a_train_camera = close_to_cameras(model, scene.train)
     views = []
     for cam in scene.test:
         visible, centre, depth = centres(model, backend, cam)
@@ -124,11 +131,15 @@ def analyse(run: Path, scene_path: Path | None) -> dict:
                       "close_primitives": int(close(model, cam).sum()),
                       "psnr_on_background": psnr_without(model, backend, cam, torch.zeros_like(switched), background),
                       "psnr_on_background_without_close": psnr_without(model, backend, cam, close(model, cam),
-                                                                       background)})
+                                                                       background),
+                      "close_to_a_train_camera": int((close(model, cam) & close_to_a_train_camera).sum()),
+                      "psnr_on_background_without_train_close": psnr_without(model, backend, cam,
+                                                                             close_to_a_train_camera, background)})
     return {"run": str(run), "kernel": meta["spec"]["kernel"], "primitives": n,
             "switched_share": float(switched.sum()) / n,
             "mean_centre_spread": float((highest - lowest)[seen].mean()) if seen.any() else 0.0,
             "close_primitives_median_train_view": close_in_train[len(close_in_train) // 2],
+            "close_to_a_train_camera": int(close_to_a_train_camera.sum()),
             "test_views": views}
 
 
@@ -142,16 +153,19 @@ def main() -> None:
     for r in rows:
         print(f"{r['run']}: {r['kernel']}, {r['primitives']} primitives, switched by view "
               f"{100 * r['switched_share']:.1f} %, mean d(0) spread {r['mean_centre_spread']:.3f}, "
-              f"close primitives in the median train view {r['close_primitives_median_train_view']}")
+              f"close primitives in the median train view {r['close_primitives_median_train_view']}, "
+              f"close in some train view {r['close_to_a_train_camera']}")
         print(f"  {'test view':<32} {'PSNR':>6} {'near':>6} {'near alpha':>11} {'of it switched':>15} "
-              f"{'on black':>9} {'w/o switched':>13} {'brighter':>9} {'close':>6} {'on bg':>6} {'w/o close':>10}")
+              f"{'on black':>9} {'w/o switched':>13} {'brighter':>9} {'close':>6} {'on bg':>6} {'w/o close':>10} "
+              f"{'of close, train-close':>22} {'w/o train-close':>16}")
         for v in r["test_views"]:
             shown = "" if v["psnr"] is None else f"{v['psnr']:.2f}"
             print(f"  {v['view'][-32:]:<32} {shown:>6} {v['near_primitives']:>6} {v['near_alpha']:>11.3f} "
                   f"{v['near_switched_alpha']:>15.3f} {v['psnr_on_black']:>9.2f} "
                   f"{v['psnr_on_black_without_switched']:>13.2f} {v['brighter_than_in_train']:>9} "
                   f"{v['close_primitives']:>6} {v['psnr_on_background']:>6.2f} "
-                  f"{v['psnr_on_background_without_close']:>10.2f}")
+                  f"{v['psnr_on_background_without_close']:>10.2f} {v['close_to_a_train_camera']:>22} "
+                  f"{v['psnr_on_background_without_train_close']:>16.2f}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 
