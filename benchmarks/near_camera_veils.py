@@ -23,9 +23,9 @@ For each run (a `splatk fit` folder with its model.pt), with the scene loaded as
   view and in the median train view, and the PSNR of each view on the scene's background with
   them left out, beside the same render with them in.
 * **close to a train camera**: of a test view's close primitives, how many are close to a train
-  camera too and hold none (`splatk.train.near_cameras`: what MCMC's ``relocate_near_cameras``
-  relocates, all a rule acting in training can see), and the test view's PSNR on the background
-  with every primitive of that kind left out.
+  camera too and hold none (no train camera inside their support ellipsoid: the set decision 0118
+  relocated in training, all a rule acting in training can see), and the test view's PSNR on the
+  background with every primitive of that kind left out.
 
 Prints a table per run and, with ``--json``, writes every figure.
 """
@@ -39,10 +39,10 @@ import torch
 
 from splatk import backends
 from splatk.data import load_scene
+from splatk.functional.projection import quats_to_rotmats
 from splatk.kernels.base import ViewContext
 from splatk.metrics import psnr
 from splatk.models.io import load_model
-from splatk.train.near_cameras import CLOSE_SUPPORTS, close_to_cameras
 
 #: "near": nearer than this fraction of the visible primitives' median depth
 NEAR_FRACTION = 0.25
@@ -50,6 +50,8 @@ NEAR_FRACTION = 0.25
 OFF, ON = 0.1, 0.9
 #: d(0) in a test view this far above its highest in the train views: a new brightness
 BRIGHTER = 0.2
+#: "close": centre depth below this many times the primitive's support radius
+CLOSE_SUPPORTS = 3.0
 
 
 def centres(model, backend, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -97,6 +99,21 @@ def close(model, cam) -> torch.Tensor:
     return (depth > 0) & (depth < CLOSE_SUPPORTS * radius)
 
 
+def close_to_train_cameras(model, cameras) -> torch.Tensor:
+    """The primitives close to one of ``cameras`` or more (:func:`close`) that hold none of them: no
+    camera inside the support ellipsoid (decision 0112's test; cup's backdrop holds its cameras)."""
+    means, scales, support = model.prims["means"], model.scales, model.kernel.support_sigmas
+    rotations = quats_to_rotmats(model.prims["quats"])
+    near = torch.zeros(len(means), dtype=torch.bool)
+    holds = torch.zeros_like(near)
+    for cam in cameras:
+        near |= close(model, cam)
+        # the camera centre in each primitive's frame, in its sigmas along the three axes
+        local = torch.einsum("nji,nj->ni", rotations, cam.center - means) / scales
+        holds |= (local * local).sum(dim=1) <= support * support
+    return near & ~holds
+
+
 @torch.no_grad()
 def analyse(run: Path, scene_path: Path | None) -> dict:
     model, meta = load_model(run / "model.pt")
@@ -117,7 +134,7 @@ def analyse(run: Path, scene_path: Path | None) -> dict:
         eval_psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
     background = torch.tensor(scene.background, dtype=torch.float32)
     close_in_train = sorted(int(close(model, cam).sum()) for cam in scene.train)
-    close_to_a_train_camera = close_to_cameras(model, scene.train)
+    close_to_a_train_camera = close_to_train_cameras(model, scene.train)
     views = []
     for cam in scene.test:
         visible, centre, depth = centres(model, backend, cam)

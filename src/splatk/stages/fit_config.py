@@ -336,7 +336,6 @@ RULES = [
     ("train.mcmc.min_opacity", "min_opacity", float_range(0.0, 1.0, lo_open=True)),
     ("train.mcmc.growth", "growth", float_range(1.0)),
     ("train.mcmc.relocate_one_view", "relocate_one_view", BOOL),
-    ("train.mcmc.relocate_near_cameras", "relocate_near_cameras", BOOL),
     ("scale_schedules", "scale_schedules", BOOL),
     ("short_run_lrs", "short_run_lrs", BOOL),
     ("train.lr_scale", "lr_scale", float_range(0.0, None, lo_open=True)),

@@ -12,8 +12,7 @@ within the seed-to-seed spread, so the default stays DBS's.
 
 Dead also counts, for a view-dependent kernel, a primitive that one train view draws while the
 other train views that see it switch it off (``relocate_one_view``, on by default; not in DBS;
-:mod:`splatk.train.view_support`, docs/decisions/0113), and with ``relocate_near_cameras`` a
-primitive close to a train camera for its size (:mod:`splatk.train.near_cameras`).
+:mod:`splatk.train.view_support`, docs/decisions/0113).
 """
 from __future__ import annotations
 
@@ -22,7 +21,6 @@ from dataclasses import dataclass
 import torch
 
 from ..functional.projection import covariances_3d
-from .near_cameras import close_to_cameras
 from .optim import PrimitiveAdam
 from .strategies import Strategy, register_strategy
 from .view_support import one_view_primitives
@@ -47,9 +45,6 @@ class MCMCConfig:
     #: a view-dependent kernel's primitives that one train view draws and the others that see
     #: them switch off count as dead (:mod:`splatk.train.view_support`, docs/decisions/0113)
     relocate_one_view: bool = True
-    #: primitives close to a train camera for their size count as dead, of every volumetric
-    #: kernel (:mod:`splatk.train.near_cameras`)
-    relocate_near_cameras: bool = False
 
 
 #: 3DGS-MCMC's binomial table stops at 51 copies (gsplat RelocationCUDA.cu n_max)
@@ -148,8 +143,6 @@ class MCMCStrategy(Strategy):
         dead = (op <= self.cfg.min_opacity) | ~finite
         if self.cfg.relocate_one_view:
             dead |= one_view_primitives(model, self.backend, self.views)
-        if self.cfg.relocate_near_cameras:
-            dead |= close_to_cameras(model, self.views)
         alive = ~dead
         n_dead = int(dead.sum())
         if n_dead == 0 or int(alive.sum()) == 0:
