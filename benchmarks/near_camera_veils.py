@@ -2,7 +2,7 @@
 learned kernel, primitives whose profile the networks switch on in some train views and off in
 others.
 
-    python benchmarks/near_camera_veils.py RUN [RUN ...] [--scene PATH] [--json OUT.json]
+    python benchmarks/near_camera_veils.py RUN [RUN ...] [--scene PATH] [--close-supports 3] [--json OUT.json]
 
 For each run (a `splatk fit` folder with its model.pt), with the scene loaded as the run loaded it:
 
@@ -90,16 +90,16 @@ def psnr_without(model, backend, cam, drop: torch.Tensor, background: torch.Tens
     return float(psnr(image, cam.image_float()))
 
 
-def close(model, cam) -> torch.Tensor:
-    """The primitives whose centre is in front of the camera and nearer than CLOSE_SUPPORTS x their
+def close(model, cam, supports: float = CLOSE_SUPPORTS) -> torch.Tensor:
+    """The primitives whose centre is in front of the camera and nearer than ``supports`` x their
     support radius. The radius, not the scale, so that kernels of different support (the
     Gaussian's 3 sigma, the learned kernel's 1) compare at the same footprint."""
     depth = (model.prims["means"] @ cam.world_to_cam[:3, :3].T + cam.world_to_cam[:3, 3])[:, 2]
     radius = model.kernel.support_sigmas * model.scales.max(dim=1).values
-    return (depth > 0) & (depth < CLOSE_SUPPORTS * radius)
+    return (depth > 0) & (depth < supports * radius)
 
 
-def close_to_train_cameras(model, cameras) -> torch.Tensor:
+def close_to_train_cameras(model, cameras, supports: float = CLOSE_SUPPORTS) -> torch.Tensor:
     """The primitives close to one of ``cameras`` or more (:func:`close`) that hold none of them: no
     camera inside the support ellipsoid (decision 0112's test; cup's backdrop holds its cameras)."""
     means, scales, support = model.prims["means"], model.scales, model.kernel.support_sigmas
@@ -107,7 +107,7 @@ def close_to_train_cameras(model, cameras) -> torch.Tensor:
     near = torch.zeros(len(means), dtype=torch.bool)
     holds = torch.zeros_like(near)
     for cam in cameras:
-        near |= close(model, cam)
+        near |= close(model, cam, supports)
         # the camera centre in each primitive's frame, in its sigmas along the three axes
         local = torch.einsum("nji,nj->ni", rotations, cam.center - means) / scales
         holds |= (local * local).sum(dim=1) <= support * support
@@ -115,7 +115,7 @@ def close_to_train_cameras(model, cameras) -> torch.Tensor:
 
 
 @torch.no_grad()
-def analyse(run: Path, scene_path: Path | None) -> dict:
+def analyse(run: Path, scene_path: Path | None, supports: float = CLOSE_SUPPORTS) -> dict:
     model, meta = load_model(run / "model.pt")
     scene = load_scene(scene_path or meta["scene"], downscale=meta.get("downscale", 1.0),
                        test_every=meta.get("test_every", 8), eval_split=meta.get("eval_split", "held-out"))
@@ -133,26 +133,26 @@ def analyse(run: Path, scene_path: Path | None) -> dict:
     if evaluated.exists():
         eval_psnr = {v["view"]: v.get("psnr") for v in json.loads(evaluated.read_text())["per_view"]}
     background = torch.tensor(scene.background, dtype=torch.float32)
-    close_in_train = sorted(int(close(model, cam).sum()) for cam in scene.train)
-    close_to_a_train_camera = close_to_train_cameras(model, scene.train)
+    close_in_train = sorted(int(close(model, cam, supports).sum()) for cam in scene.train)
+    close_to_a_train_camera = close_to_train_cameras(model, scene.train, supports)
     views = []
     for cam in scene.test:
         visible, centre, depth = centres(model, backend, cam)
         near = visible & (depth < NEAR_FRACTION * depth[visible].median())
+        close_here = close(model, cam, supports)
         views.append({"view": cam.name, "psnr": eval_psnr.get(cam.name), "near_primitives": int(near.sum()),
                       "near_alpha": alpha_of(model, backend, cam, near),
                       "near_switched_alpha": alpha_of(model, backend, cam, near & switched),
                       "psnr_on_black": psnr_without(model, backend, cam, torch.zeros_like(switched)),
                       "psnr_on_black_without_switched": psnr_without(model, backend, cam, switched),
                       "brighter_than_in_train": int((visible & (centre > highest + BRIGHTER)).sum()),
-                      "close_primitives": int(close(model, cam).sum()),
+                      "close_primitives": int(close_here.sum()),
                       "psnr_on_background": psnr_without(model, backend, cam, torch.zeros_like(switched), background),
-                      "psnr_on_background_without_close": psnr_without(model, backend, cam, close(model, cam),
-                                                                       background),
-                      "close_to_a_train_camera": int((close(model, cam) & close_to_a_train_camera).sum()),
+                      "psnr_on_background_without_close": psnr_without(model, backend, cam, close_here, background),
+                      "close_to_a_train_camera": int((close_here & close_to_a_train_camera).sum()),
                       "psnr_on_background_without_train_close": psnr_without(model, backend, cam,
                                                                              close_to_a_train_camera, background)})
-    return {"run": str(run), "kernel": meta["spec"]["kernel"], "primitives": n,
+    return {"run": str(run), "kernel": meta["spec"]["kernel"], "primitives": n, "close_supports": supports,
             "switched_share": float(switched.sum()) / n,
             "mean_centre_spread": float((highest - lowest)[seen].mean()) if seen.any() else 0.0,
             "close_primitives_median_train_view": close_in_train[len(close_in_train) // 2],
@@ -164,9 +164,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--scene", type=Path, help="the scene folder, if it moved since the fit")
+    ap.add_argument("--close-supports", type=float, default=CLOSE_SUPPORTS,
+                    help="the close mark, in support radii (default %(default)s)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
-    rows = [analyse(run, args.scene) for run in args.runs]
+    rows = [analyse(run, args.scene, args.close_supports) for run in args.runs]
     for r in rows:
         print(f"{r['run']}: {r['kernel']}, {r['primitives']} primitives, switched by view "
               f"{100 * r['switched_share']:.1f} %, mean d(0) spread {r['mean_centre_spread']:.3f}, "
