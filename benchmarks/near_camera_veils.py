@@ -17,11 +17,11 @@ For each run (a `splatk fit` folder with its model.pt), with the scene loaded as
   background, so it can differ from eval's figure), and the number of primitives whose d(0) in
   the test view is above their highest in any train view by more than 0.2 (Phi_proj
   extrapolating to the new view).
-* **close**: the primitives whose centre is nearer the camera than 3x their support radius (the
-  kernel's support in sigmas times the largest scale: there EWA splatting's first-order
-  projection spreads a primitive far beyond its true footprint), how many there are in the test
-  view and in the median train view, and the PSNR of each view on the scene's background with
-  them left out, beside the same render with them in.
+* **close**: the primitives whose centre is nearer the camera than 3x (``--close-supports``) their
+  support radius (the kernel's support in sigmas times the largest scale: there EWA splatting's
+  first-order projection spreads a primitive far beyond its true footprint), how many there are in
+  the test view and in the median train view, and the PSNR of each view on the scene's background
+  with them left out, beside the same render with them in.
 * **close to a train camera**: of a test view's close primitives, how many are close to a train
   camera too and hold none (no train camera inside their support ellipsoid: the set decision 0118
   relocated in training, all a rule acting in training can see), and the test view's PSNR on the
@@ -173,7 +173,7 @@ def main() -> None:
         print(f"{r['run']}: {r['kernel']}, {r['primitives']} primitives, switched by view "
               f"{100 * r['switched_share']:.1f} %, mean d(0) spread {r['mean_centre_spread']:.3f}, "
               f"close primitives in the median train view {r['close_primitives_median_train_view']}, "
-              f"close in some train view {r['close_to_a_train_camera']}")
+              f"close to a train camera and holding none {r['close_to_a_train_camera']}")
         print(f"  {'test view':<32} {'PSNR':>6} {'near':>6} {'near alpha':>11} {'of it switched':>15} "
               f"{'on black':>9} {'w/o switched':>13} {'brighter':>9} {'close':>6} {'on bg':>6} {'w/o close':>10} "
               f"{'of close, train-close':>22} {'w/o train-close':>16}")
