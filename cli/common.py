@@ -11,7 +11,7 @@ import click
 import yaml
 from click.core import ParameterSource
 
-from splatk.errors import InputError
+from splatk.errors import InputError, describe_yaml_error
 
 
 def _preset_dirs() -> list[Path]:
@@ -46,8 +46,10 @@ def load_preset(name: str | None) -> tuple[dict, Path | None]:
     path = find_preset(name)
     try:
         data = yaml.safe_load(path.read_text()) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(path, f"invalid YAML ({str(e).splitlines()[0]})", "fix the preset file") from None
+    except yaml.YAMLError as e:
+        raise InputError(path, f"invalid YAML ({describe_yaml_error(e)})", "fix the preset file") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "is not UTF-8 text", "save the preset as UTF-8") from None
     if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
         raise InputError(path, "a preset is a mapping of option names to values", "e.g. iters: 2000")
     return {k.replace("-", "_"): v for k, v in data.items()}, path

@@ -20,7 +20,18 @@ class InputError(Exception):
     def message(self) -> str:
         where = f"{self.path}: " if self.path is not None else ""
         tail = f" ({self.fix})" if self.fix else ""
-        return f"{where}{self.problem}{tail}"
+        # One line whatever the problem's text holds: parsers' messages quote the input over
+        # several lines, and a shell script greps the first.
+        return " ".join(f"{where}{self.problem}{tail}".split())
+
+
+def describe_yaml_error(error: Exception) -> str:
+    """A YAML parser's error in one line: where in the file and what the parser found there
+    (PyYAML's own text spreads the quoted input over several lines)."""
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    mark = getattr(error, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return f"{where}{problem}"
 
 
 class BackendUnavailable(RuntimeError):

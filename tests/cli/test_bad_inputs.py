@@ -311,6 +311,29 @@ def test_eval_and_export_of_a_missing_run(tmp_path):
     assert not (tmp_path / "m.ply").exists()
 
 
+@pytest.mark.parametrize("damage", ["yaml", "not_utf8"])
+def test_damaged_yaml_files(damage, demo, tmp_path):
+    """A preset, a bench file and a run's config.yaml that cannot be read: one line naming the file,
+    and for a YAML error the line and column where the parser stopped (PyYAML's own message spans
+    several lines, quoting the input)."""
+    text = b"iters: 100\nkernel: [gaussian\n" if damage == "yaml" else b"iters: \xff\n"
+    where = "line 3, column 1" if damage == "yaml" else "UTF-8"
+    preset = tmp_path / "preset.yaml"
+    preset.write_bytes(text)
+    m = expect_error(fit(demo, tmp_path / "run", "--preset", preset), preset, "preset")
+    assert where in m["problem"] + m["fix"]
+    m = expect_error(["bench", demo, "--out", tmp_path / "bench", "--preset", preset, "-q"], preset, "bench file")
+    assert where in m["problem"] + m["fix"]
+    run = tmp_path / "old"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.pt").write_bytes(b"checkpoint")
+    (run / "config.yaml").write_bytes(text)
+    m = expect_error(["fit", "--resume", "--out", run, "-q"], run / "config.yaml", "without --resume")
+    if damage == "yaml":
+        assert where in m["problem"]
+    assert (run / "config.yaml").read_bytes() == text
+
+
 # ---------------------------------------------------------------------------------------------- real processes
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import yaml
 
-from ..errors import InputError
+from ..errors import InputError, describe_yaml_error
 from ..kernels.auto_k import AUTO_K
 from ..stages.fit_config import FitConfig, check_fit_config, fit_config_from_options, parse_bytes
 
@@ -163,7 +163,9 @@ def load_bench_file(path: str | Path) -> dict:
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as e:
-        raise InputError(path, f"invalid YAML ({e})") from e
+        raise InputError(path, f"invalid YAML ({describe_yaml_error(e)})", "fix the bench file") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "is not UTF-8 text", "save the bench file as UTF-8") from None
     if not isinstance(data, dict):
         raise InputError(path, "a bench file is a mapping (defaults, methods, grid, scenes, stability)")
     known = {"defaults", "methods", "grid", "scenes", "metrics", "lpips_net", "scale_schedules", "stability",

@@ -20,7 +20,7 @@ import torch
 import yaml
 
 from ..data import load_scene
-from ..errors import InputError, TrainingStalled
+from ..errors import InputError, TrainingStalled, describe_yaml_error
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
@@ -70,7 +70,10 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
         cfg = FitConfig.from_dict(saved["settings"])
     except FileNotFoundError:
         raise InputError(cfg_path, "run settings are missing", "run without --resume") from None
-    except (yaml.YAMLError, KeyError, TypeError, ValueError) as e:
+    except yaml.YAMLError as e:
+        raise InputError(cfg_path, f"run settings are not valid YAML ({describe_yaml_error(e)})",
+                         "restore the file or run without --resume") from None
+    except (KeyError, TypeError, ValueError) as e:
         raise InputError(cfg_path, f"run settings cannot be read ({type(e).__name__}: {e})",
                          "restore the file or run without --resume") from None
     try:
