@@ -5,6 +5,7 @@ The CLI turns it into a one-line message and exit code 2 (full traceback only wi
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 
@@ -20,9 +21,10 @@ class InputError(Exception):
     def message(self) -> str:
         where = f"{self.path}: " if self.path is not None else ""
         tail = f" ({self.fix})" if self.fix else ""
-        # One line whatever the problem's text holds: parsers' messages quote the input over
-        # several lines, and a shell script greps the first.
-        return " ".join(f"{where}{self.problem}{tail}".split())
+        # One line whatever the problem's text holds (parsers' messages quote the input over
+        # several lines): scripts read the first line of stderr. Only line breaks are replaced,
+        # so a path's own spacing stays as it is.
+        return re.sub(r"[ \t]*[\r\n]+[ \t]*", " ", f"{where}{self.problem}{tail}")
 
 
 def describe_yaml_error(error: Exception) -> str:
