@@ -36,7 +36,9 @@ def find_preset(name: str) -> Path:
         for cand in (d / name, d / f"{name}.yaml"):
             if cand.is_file():
                 return cand
-    raise click.BadParameter(f"preset {name!r} not found (looked in {', '.join(map(str, PRESET_DIRS))})")
+    names = sorted({c.stem for d in PRESET_DIRS for c in d.glob("*.yaml")})
+    raise InputError(name, "no such file, nor a preset of that name",
+                     f"give a YAML file's path or a preset: {', '.join(names)}")
 
 
 def load_preset(name: str | None) -> tuple[dict, Path | None]:

@@ -311,6 +311,16 @@ def test_eval_and_export_of_a_missing_run(tmp_path):
     assert not (tmp_path / "m.ply").exists()
 
 
+def test_preset_that_does_not_exist(demo, tmp_path):
+    """A --preset that is neither a file nor a shipped preset: one line naming it and the presets
+    there are (fit and bench read presets alike)."""
+    m = expect_error(fit(demo, tmp_path / "run", "--preset", "no_such_preset"), "no_such_preset", "fast")
+    assert "default" in m["fix"] and "bench_quick" in m["fix"]
+    expect_error(["bench", demo, "--out", tmp_path / "bench", "--preset", tmp_path / "gone.yaml", "-q"],
+                 "gone.yaml", "bench_quick")
+    assert not (tmp_path / "run").exists() and not (tmp_path / "bench").exists()
+
+
 @pytest.mark.parametrize("damage", ["yaml", "not_utf8"])
 def test_damaged_yaml_files(damage, demo, tmp_path):
     """A preset, a bench file and a run's config.yaml that cannot be read: one line naming the file,
