@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import click
-import yaml
 from click.core import ParameterSource
 
-from splatk.errors import InputError, describe_yaml_error
+from splatk.errors import InputError
+from splatk.yaml_files import read_yaml_file
 
 
 def _preset_dirs() -> list[Path]:
@@ -46,12 +46,7 @@ def load_preset(name: str | None) -> tuple[dict, Path | None]:
     if not name:
         return {}, None
     path = find_preset(name)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise InputError(path, f"invalid YAML ({describe_yaml_error(e)})", "fix the preset file") from None
-    except UnicodeDecodeError:
-        raise InputError(path, "is not UTF-8 text", "save the preset as UTF-8") from None
+    data = read_yaml_file(path, "preset") or {}
     if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
         raise InputError(path, "a preset is a mapping of option names to values", "e.g. iters: 2000")
     return {k.replace("-", "_"): v for k, v in data.items()}, path

@@ -27,15 +27,6 @@ class InputError(Exception):
         return re.sub(r"[ \t]*[\r\n]+[ \t]*", " ", f"{where}{self.problem}{tail}")
 
 
-def describe_yaml_error(error: Exception) -> str:
-    """A YAML parser's error in one line: where in the file and what the parser found there
-    (PyYAML's own text spreads the quoted input over several lines)."""
-    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-    mark = getattr(error, "problem_mark", None)
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    return f"{where}{problem}"
-
-
 class BackendUnavailable(RuntimeError):
     """A rasteriser backend cannot run here (e.g. no compiler for the native CPU backend)."""
 

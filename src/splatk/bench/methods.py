@@ -21,11 +21,11 @@ import json
 import re
 from pathlib import Path
 
-import yaml
 
-from ..errors import InputError, describe_yaml_error
+from ..errors import InputError
 from ..kernels.auto_k import AUTO_K
 from ..stages.fit_config import FitConfig, check_fit_config, fit_config_from_options, parse_bytes
+from ..yaml_files import read_yaml_file
 
 #: keys a method may have besides FitConfig / TrainConfig fields
 METHOD_KEYS = ("name", "k", "weights", "budget_bytes", "kernel_options", "pretrain", "pretrain_steps")
@@ -160,12 +160,7 @@ def load_bench_file(path: str | Path) -> dict:
     (a published protocol's name and the settings that make it that protocol, e.g.
     ``{name: paper Tab. 2, iters: 30000}``: :func:`protocol_departures` names what a run changes)."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise InputError(path, f"invalid YAML ({describe_yaml_error(e)})", "fix the bench file") from None
-    except UnicodeDecodeError:
-        raise InputError(path, "is not UTF-8 text", "save the bench file as UTF-8") from None
+    data = read_yaml_file(path, "bench file") or {}
     if not isinstance(data, dict):
         raise InputError(path, "a bench file is a mapping (defaults, methods, grid, scenes, stability)")
     known = {"defaults", "methods", "grid", "scenes", "metrics", "lpips_net", "scale_schedules", "stability",

@@ -20,7 +20,7 @@ import torch
 import yaml
 
 from ..data import load_scene
-from ..errors import InputError, TrainingStalled, describe_yaml_error
+from ..errors import InputError, TrainingStalled
 from ..backends import GAUSSIAN_SUPPORT_SIGMAS
 from ..device import resolve_device
 from ..kernels import KERNELS, make_kernel
@@ -33,6 +33,7 @@ from ..models.volumetric import SplatModel
 from ..outputs import OutputDir, check_output_dir
 from ..train.distributed import SINGLE, World, join, launched_world, leave, local_device
 from ..train.trainer import StepInfo, Trainer
+from ..yaml_files import describe_yaml_error
 from .auto_settings import resolve_init, train_pixels_per_view
 from .autobudget import AutoBudget, render_psnr, split_holdout
 from .fit_config import PRIMITIVES, FitConfig, check_fit_config, fit_config_from_options
@@ -70,11 +71,9 @@ def load_resume_state(out: Path) -> tuple[str, "FitConfig", dict]:
         cfg = FitConfig.from_dict(saved["settings"])
     except FileNotFoundError:
         raise InputError(cfg_path, "run settings are missing", "run without --resume") from None
-    except yaml.YAMLError as e:
-        raise InputError(cfg_path, f"run settings are not valid YAML ({describe_yaml_error(e)})",
-                         "restore the file or run without --resume") from None
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(cfg_path, f"run settings cannot be read ({type(e).__name__}: {e})",
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as e:
+        why = describe_yaml_error(e) if isinstance(e, yaml.YAMLError) else f"{type(e).__name__}: {e}"
+        raise InputError(cfg_path, f"run settings cannot be read ({why})",
                          "restore the file or run without --resume") from None
     try:
         # onto the CPU whatever device wrote it: the trainer moves each part to the device the
