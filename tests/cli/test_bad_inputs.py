@@ -23,6 +23,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+import yaml
 from click.testing import CliRunner
 
 from splatk.outputs import write_marker
@@ -319,6 +320,30 @@ def test_preset_that_does_not_exist(demo, tmp_path):
     expect_error(["bench", demo, "--out", tmp_path / "bench", "--preset", tmp_path / "gone.yaml", "-q"],
                  "gone.yaml", "bench_quick")
     assert not (tmp_path / "run").exists() and not (tmp_path / "bench").exists()
+
+
+@pytest.mark.parametrize("flags, named, fix", [
+    (["--kernel", "beta", "--k", "4"], "--k 4", "--kernel learned"),
+    (["--primitive", "planar", "--kernel", "learned", "--k", "4"], "--k 4", "--primitive volumetric"),
+    (["--kernel-weights", "w.pt"], "--kernel-weights", "--kernel learned"),
+    (["--color", "sb", "--sh-degree", "1"], "--sh-degree 1", "--color sh"),
+])
+def test_flag_the_chosen_model_has_no_use_for(flags, named, fix, demo, tmp_path):
+    """A flag typed for another kernel or colour model is one error line, not silently dropped
+    (`--kernel beta --k 4` trained Beta and said nothing); nothing is written."""
+    expect_error(fit(demo, tmp_path / "run", *flags), named, fix)
+    assert not (tmp_path / "run").exists()
+
+
+def test_preset_may_set_options_of_a_kernel_the_command_line_replaces(demo, tmp_path):
+    """A preset's k stays allowed when the command line picks another kernel: presets set options
+    for the kernels they pick, and the command line beats them."""
+    preset = tmp_path / "learned.yaml"
+    preset.write_text("kernel: learned\nk: 4\n")
+    res = CliRunner().invoke(cli, [str(a) for a in fit(demo, tmp_path / "run", "--preset", preset,
+                                                       "--kernel", "gaussian", "--iters", "5")])
+    assert res.exit_code == 0, res.output
+    assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["settings"]["kernel"] == "gaussian"
 
 
 @pytest.mark.parametrize("damage", ["yaml", "not_utf8"])

@@ -146,6 +146,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         if key in opts:
             setattr(cfg, key, opts.pop(key))
     planar = cfg.primitive == "planar"
+    _check_flags_apply(opts, sources, cfg.kernel, planar, opts.get("color", cfg.color))
     if "k" in opts:
         k = _read_k(opts.pop("k"), sources)
         if cfg.kernel == "learned" and not planar:  # the planar learned kernel has no k
@@ -243,6 +244,23 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         if scaled:
             notes["scaled_schedules"] = {"factor": fraction, **scaled}
     return cfg, notes
+
+
+def _check_flags_apply(opts: dict, sources: dict, kernel: str, planar: bool, color: str) -> None:
+    """A flag typed on the command line that the chosen kernel or colour model has no use for is an
+    error, not silently dropped: `--kernel beta --k 4` would otherwise train Beta and say nothing.
+    Presets and bench files may set options for kernels they do not pick, so only the command
+    line's own flags are checked."""
+    learned = kernel == "learned"
+    rules = (("k", learned and not planar, "is an option of the volumetric learned kernel",
+              "use --primitive volumetric" if learned else "add --kernel learned"),
+             ("kernel_weights", learned, "is an option of the learned kernel", "add --kernel learned"),
+             ("sh_degree", color == "sh", "is an option of the SH colour model", "add --color sh"))
+    for name, applies, problem, fix in rules:
+        if name in opts and not applies and sources.get(name) == "command line":
+            value = str(opts[name])
+            value = int(value) if value.isdigit() else value
+            raise option_error(name, value, problem, f"{fix}, or leave the flag out", "command line")
 
 
 def _weights_path(w) -> str:
