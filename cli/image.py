@@ -5,7 +5,9 @@ import json
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
+from splatk.errors import InputError
 from splatk.image.fit import MODES, ImageFitConfig
 from splatk.image.kernels import KERNEL_CHOICES
 from splatk.image.model import BACKENDS
@@ -58,7 +60,8 @@ _D = ImageFitConfig()
 @click.option("--log-every", type=click.FloatRange(min=0), default=DEFAULT_LOG_EVERY, show_default=True,
               metavar="SECONDS", help="When stderr is not a terminal: print a plain progress line this often "
               "instead of the bar.")
-def command(photo, kernel, mode, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
+@click.pass_context
+def command(ctx, photo, kernel, mode, budget_bytes, out, iters, seed, threads, downscale, grid, latent_dim, shapes,
             exact, backend, device, no_lpips, overwrite, quiet, log_every):
     """Represent PHOTO with 2D splats at a byte budget and report PSNR / SSIM / LPIPS.
 
@@ -67,6 +70,7 @@ def command(photo, kernel, mode, budget_bytes, out, iters, seed, threads, downsc
     """
     import torch
 
+    _check_learned_flags(ctx, kernel, mode)
     if threads:
         torch.set_num_threads(threads)
     from splatk.stages.fit_config import parse_bytes
@@ -109,3 +113,19 @@ def command(photo, kernel, mode, budget_bytes, out, iters, seed, threads, downsc
                   + f", PSNR {m['psnr']:.2f}, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['seconds']:.1f} s")
     click.echo(f"wrote {path.parent / m['file']} ({m['file_bytes']} bytes: {m['bytes']} and a header)")
     click.echo(f"wrote {path}")
+
+
+def _check_learned_flags(ctx: click.Context, kernel: str, mode: str) -> None:
+    """A learned-kernel flag typed with another kernel, or one that paper mode fixes, is an error
+    rather than silently dropped (`--kernel gaussian --grid 4` fitted Gaussians and said nothing)."""
+    typed = [p.name for p in ctx.command.params
+             if p.name in ("grid", "latent_dim", "shapes", "exact")
+             and ctx.get_parameter_source(p.name) == ParameterSource.COMMANDLINE]
+    flag = {name: "--" + name.replace("_", "-") for name in typed}
+    if kernel != "learned" and typed:
+        raise InputError(None, f"{flag[typed[0]]}: is an option of the learned kernel",
+                         "add --kernel learned, or leave the flag out")
+    fixed = [name for name in typed if name in ("latent_dim", "shapes")]
+    if kernel == "learned" and mode == "paper" and fixed:
+        raise InputError(None, f"{flag[fixed[0]]}: --mode paper fits the paper's 10-float latent per splat, "
+                         "without a shape palette", "use --mode tuned, or leave the flag out")

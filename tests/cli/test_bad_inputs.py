@@ -335,6 +335,19 @@ def test_flag_the_chosen_model_has_no_use_for(flags, named, fix, demo, tmp_path)
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize("flags, named, fix", [
+    (["--kernel", "gaussian", "--grid", "4"], "--grid", "--kernel learned"),
+    (["--kernel", "gabor", "--exact"], "--exact", "--kernel learned"),
+    (["--mode", "paper", "--shapes", "8"], "--shapes", "--mode tuned"),
+])
+def test_image_flag_the_chosen_kernel_has_no_use_for(flags, named, fix, demo, tmp_path):
+    """`splatk image` alike: a learned-kernel flag with another kernel, or one paper mode fixes, is
+    one error line and nothing is written."""
+    photo = next(demo.rglob("*.png"))
+    expect_error(["image", photo, "--out", tmp_path / "img", "--iters", "2", "-q", *flags], named, fix)
+    assert not (tmp_path / "img").exists()
+
+
 def test_preset_may_set_options_of_a_kernel_the_command_line_replaces(demo, tmp_path):
     """A preset's k stays allowed when the command line picks another kernel: presets set options
     for the kernels they pick, and the command line beats them."""
