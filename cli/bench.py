@@ -103,6 +103,7 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
         except ValueError as e:
             raise click.BadParameter(str(e), param_hint="--time-budget") from None
     methods = list(data.get("methods") or [])
+    check_grid_flags(kernel, ks, weights, color, budget, budget_bytes, only, stability, methods)
     if kernel:
         methods = build_methods(kernel, ks, weights, color, budget, budget_bytes)
     elif budget or budget_bytes or color or ks:
@@ -111,9 +112,6 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
                    for o in _overrides(ks, color, budget, budget_bytes)]
         unique = {json.dumps(m, sort_keys=True): m for m in methods}  # e.g. YAML budgets replaced by one flag
         methods = list(unique.values())
-    if only and stability:
-        raise click.BadParameter("picks methods of the grid; --stability runs its own kernels and conditions",
-                                 param_hint="--only")
     if only:
         ids = [method_id(m, defaults) for m in methods]
         methods = [m for m, i in zip(methods, ids) if any(fnmatch.fnmatchcase(i, p) for p in only)]
@@ -186,6 +184,27 @@ def command(scenes, out, preset, kernel, ks, weights, color, budget, budget_byte
             raise SystemExit(128 + stop["signal"])
     for p in res.charts:
         console.print(f"wrote {p}")
+
+
+def check_grid_flags(kernel, ks, weights, color, budget, budget_bytes, only, stability, methods) -> None:
+    """A grid flag that would change nothing is an error, not silently dropped: --stability runs
+    its own kernels and conditions, --weights shapes flag-built learned methods, --k learned ones."""
+    if stability:
+        given = [name for name, value in (("--only", only), ("--kernel", kernel), ("--k", ks), ("--weights", weights),
+                                          ("--color", color), ("--budget-bytes", budget_bytes)) if value]
+        if given:
+            raise click.BadParameter("--stability runs its own kernels and conditions (the bench file's "
+                                     "stability: section sets them)", param_hint=given[0])
+        if len(budget) > 1:
+            raise click.BadParameter("--stability trains every cell at one budget", param_hint="--budget")
+        return
+    if weights and "learned" not in kernel:
+        raise click.BadParameter("sets the weights of the flag-built learned methods (add --kernel learned)",
+                                 param_hint="--weights")
+    learned = "learned" in kernel if kernel else any(m.get("kernel") == "learned" for m in methods)
+    if ks and not learned:
+        raise click.BadParameter("sets the learned kernel's k, and no method of the grid is learned "
+                                 "(add --kernel learned)", param_hint="--k")
 
 
 def _override(method: dict, o: dict) -> dict:

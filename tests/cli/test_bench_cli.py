@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import json
 
+import click
 import cv2
 import pytest
 import torch
 from click.testing import CliRunner
 
 from splatk.data.synthetic import make_demo_scene
-from splatk_cli.bench import build_methods
+from splatk_cli.bench import check_grid_flags, build_methods
 from splatk_cli.main import cli
 
 
@@ -85,6 +86,29 @@ def test_method_flags_make_a_grid():
     assert len(ms) == 6
     assert {"kernel": "learned", "k": 8, "weights": "none", "color": "sh", "budget_bytes": "4MB"} in ms
     assert {"kernel": "gaussian", "color": "sh", "budget_bytes": "1MB"} in ms
+
+
+@pytest.mark.parametrize("flags, named, said", [
+    (["--kernel", "gaussian", "--k", "4"], "--k", "no method of the grid is learned"),
+    (["--k", "2"], "--k", "no method of the grid is learned"),  # the plain Gaussian grid
+    (["--preset", "bench_quick", "--weights", "none"], "--weights", "add --kernel learned"),
+    (["--stability", "--kernel", "beta"], "--kernel", "--stability runs its own"),
+    (["--stability", "--budget", "100", "--budget", "200"], "--budget", "one budget"),
+])
+def test_grid_flag_that_would_change_nothing(flags, named, said, scene, tmp_path):
+    """A flag the grid has no use for stops the bench before any run (it was silently dropped:
+    `--kernel gaussian --k 4` benched the Gaussian alone)."""
+    res = CliRunner().invoke(cli, ["bench", str(scene), "--out", str(tmp_path / "b"), *flags])
+    assert res.exit_code == 2 and named in res.stderr and said in res.stderr, res.output
+    assert not (tmp_path / "b").exists()
+
+
+def test_k_without_kernel_flags_applies_to_the_bench_files_learned_methods():
+    """--k alone re-sets the k of a bench file's learned methods: allowed when it has some."""
+    methods = [{"kernel": "gaussian"}, {"kernel": "learned", "k": 8}]
+    check_grid_flags((), ("2",), None, (), (), (), (), False, methods)
+    with pytest.raises(click.BadParameter, match="no method of the grid is learned"):
+        check_grid_flags((), ("2",), None, (), (), (), (), False, methods[:1])
 
 
 def test_bad_scene_is_one_line_error(tmp_path):
