@@ -67,12 +67,20 @@ def test_ssim_gradcheck():
 @pytest.mark.parametrize("support", [3.0, 1.0])
 def test_projection_matches_reference(dtype, support):
     means, quats, scales = _ellipsoids(2000, dtype)
+    with torch.no_grad():  # a hundred large primitives just in front of the camera
+        means[:100, 2] = means[:100, 2].abs() * 0.05 - 0.25
+        means[:100, :2] *= 0.1
+        scales[:100] += 0.3
     vm, K = _camera(dtype)
     ref = project_ellipsoids(means, quats, scales, vm, K, 320, 240, support_sigmas=support)
     m2, co, dp, vis, mc, rc = project_ellipsoids_fused(means, quats, scales, vm, K, 320, 240,
                                                        support_sigmas=support, want_view=True)
     assert torch.equal(vis, ref.visible)
     assert 100 < int(vis.sum()) < 2000  # the scene exercises both branches
+    # ... and the Jacobian's depth floor: visible primitives whose support reaches across the
+    # camera plane, and ones it does not
+    floored = _reach(means, quats, scales, vm, support) > dp.detach().clamp_min(0.01)
+    assert 20 < int((floored & vis).sum()) < int(vis.sum())
     v = vis
     outs = (m2, co, dp, mc, rc)
     refs = (ref.means2d, ref.conics, ref.depths, ref.means_cam, ref.rotmats_cam)
@@ -90,6 +98,32 @@ def test_projection_matches_reference(dtype, support):
     g_ref = torch.autograd.grad(loss(*refs), (means, quats, scales))
     for a, b in zip(g_fused, g_ref):
         assert _rel(a, b) < 20 * TOL[dtype]
+
+
+def _reach(means, quats, scales, vm, support):
+    """The support's reach along the view axis: support x the camera-space sigma in depth."""
+    from splatk.functional.projection import quats_to_rotmats
+    M = (vm[:3, :3] @ quats_to_rotmats(quats.detach())) * scales.detach()[:, None, :]
+    return support * (M[:, 2] ** 2).sum(-1).sqrt()
+
+
+def test_projection_gradcheck_where_the_support_reaches_the_camera():
+    """The hand-written backward where the Jacobian's depth is the support's reach (decision
+    0120): the gradient goes through the reach to the scales and rotation, and through means2d
+    to the centre's depth."""
+    means, quats, scales = _ellipsoids(6, torch.float64, seed=3)
+    with torch.no_grad():
+        means[:, 2] = means[:, 2].abs() * 0.05 + 0.2  # in front, nearer than the support reaches
+        means[:, :2] *= 0.03
+        scales.mul_(2.0).add_(0.3)
+    vm, K = torch.eye(4, dtype=torch.float64), _camera(torch.float64)[1]
+    assert bool((_reach(means, quats, scales, vm, 3.0) > means[:, 2].detach() * 1.2).all())
+
+    def f(m, q, s):
+        a, b, c, _, d, e = project_ellipsoids_fused(m, q, s, vm, K, 320, 240, want_view=True)
+        return a, 1e3 * b, c, d, e
+
+    assert torch.autograd.gradcheck(f, (means, quats, scales))
 
 
 def test_projection_gradcheck():
