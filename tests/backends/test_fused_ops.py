@@ -77,10 +77,10 @@ def test_projection_matches_reference(dtype, support):
                                                        support_sigmas=support, want_view=True)
     assert torch.equal(vis, ref.visible)
     assert 100 < int(vis.sum()) < 2000  # the scene exercises both branches
-    # ... and the Jacobian's depth floor: visible primitives whose support reaches across the
-    # camera plane, and ones it does not
-    floored = _reach(means, quats, scales, vm, support) > dp.detach().clamp_min(0.01)
-    assert 20 < int((floored & vis).sum()) < int(vis.sum())
+    # ... and primitives whose support reaches across the camera plane, where the first-order
+    # projection is furthest from its expansion point (kangaroo's veils, decisions 0110-0120)
+    crossing = _reach(means, quats, scales, vm, support) > dp.detach().clamp_min(0.01)
+    assert 20 < int((crossing & vis).sum()) < int(vis.sum())
     v = vis
     outs = (m2, co, dp, mc, rc)
     refs = (ref.means2d, ref.conics, ref.depths, ref.means_cam, ref.rotmats_cam)
@@ -108,9 +108,8 @@ def _reach(means, quats, scales, vm, support):
 
 
 def test_projection_gradcheck_where_the_support_reaches_the_camera():
-    """The hand-written backward where the Jacobian's depth is the support's reach (decision
-    0120): the gradient goes through the reach to the scales and rotation, and through means2d
-    to the centre's depth."""
+    """The hand-written backward for primitives whose support reaches across the camera plane,
+    where the Jacobian's 1/z and x/z^2 terms are largest."""
     means, quats, scales = _ellipsoids(6, torch.float64, seed=3)
     with torch.no_grad():
         means[:, 2] = means[:, 2].abs() * 0.05 + 0.2  # in front, nearer than the support reaches

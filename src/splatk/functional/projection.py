@@ -76,25 +76,18 @@ def project_ellipsoids(
     x, y, z = means_cam.unbind(-1)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     zc = z.clamp_min(near)
+    # Evaluate the Jacobian at most 15% of the image width outside the frustum (3DGS clamps
+    # at 1.3x tan(fov/2)), so that splats far outside the view do not blow up.
+    tx = (x / zc).clamp((-cx - 0.15 * width) / fx, (width - cx + 0.15 * width) / fx)
+    ty = (y / zc).clamp((-cy - 0.15 * height) / fy, (height - cy + 0.15 * height) / fy)
+    zero = torch.zeros_like(zc)
+    J = torch.stack(
+        [fx / zc, zero, -fx * tx / zc, zero, fy / zc, -fy * ty / zc], dim=-1
+    ).view(-1, 2, 3)
     R = quats_to_rotmats(quats)
     rot_cam = Rw[None] @ R
     M = rot_cam * scales[:, None, :]
     cov_cam = M @ M.transpose(1, 2)
-    # The first-order expansion of the perspective map holds while the primitive is small against
-    # its depth. A primitive whose support reaches across the camera plane has no outline on the
-    # image, and the expansion at its centre spreads it over the whole view (decision 0120): the
-    # Jacobian is taken at the centre pushed back to the support's reach along the view axis
-    # (cov_cam[2, 2] > 0: a rotation's row is a unit vector and the scales are positive).
-    reach = support_sigmas * cov_cam[:, 2, 2].sqrt()
-    zj = torch.maximum(zc, reach)
-    # Evaluate the Jacobian at most 15% of the image width outside the frustum (3DGS clamps
-    # at 1.3x tan(fov/2)), so that splats far outside the view do not blow up.
-    tx = (x / zj).clamp((-cx - 0.15 * width) / fx, (width - cx + 0.15 * width) / fx)
-    ty = (y / zj).clamp((-cy - 0.15 * height) / fy, (height - cy + 0.15 * height) / fy)
-    zero = torch.zeros_like(zj)
-    J = torch.stack(
-        [fx / zj, zero, -fx * tx / zj, zero, fy / zj, -fy * ty / zj], dim=-1
-    ).view(-1, 2, 3)
     JM = J @ cov_cam
     cov2d = JM @ J.transpose(1, 2)
     a = cov2d[:, 0, 0] + blur

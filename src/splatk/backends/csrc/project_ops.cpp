@@ -29,8 +29,8 @@ inline void quat_to_rot(const S* q, S R[9], S qn[4], S& norm) {
 // Everything the backward pass needs is recomputed from the inputs (cheap per primitive).
 template <typename S>
 struct ProjectLocal {
-  S mc[3], zc, zj, tx, ty, J[6], Rc[9], M[9], cov[9], a, b, c, det;
-  bool det_clamped, tx_in, ty_in, floored;
+  S mc[3], zc, tx, ty, J[6], Rc[9], M[9], cov[9], a, b, c, det;
+  bool det_clamped, tx_in, ty_in;
   S qn[4], qnorm;
 };
 
@@ -42,6 +42,15 @@ inline void project_one(const Camera& cam, const S* mean, const S* quat, const S
               S(cam.R[3 * i + 2]) * mean[2] + S(cam.t[i]);
   const S fx = S(cam.fx), fy = S(cam.fy), cx = S(cam.cx), cy = S(cam.cy);
   L.zc = std::max(L.mc[2], S(cam.near));
+  const S lox = (-cx - S(0.15) * cam.width) / fx, hix = (cam.width - cx + S(0.15) * cam.width) / fx;
+  const S loy = (-cy - S(0.15) * cam.height) / fy, hiy = (cam.height - cy + S(0.15) * cam.height) / fy;
+  const S rx = L.mc[0] / L.zc, ry = L.mc[1] / L.zc;
+  L.tx_in = rx >= lox && rx <= hix;
+  L.ty_in = ry >= loy && ry <= hiy;
+  L.tx = std::min(std::max(rx, lox), hix);
+  L.ty = std::min(std::max(ry, loy), hiy);
+  L.J[0] = fx / L.zc, L.J[1] = 0, L.J[2] = -fx * L.tx / L.zc;
+  L.J[3] = 0, L.J[4] = fy / L.zc, L.J[5] = -fy * L.ty / L.zc;
   S Rq[9];
   quat_to_rot(quat, Rq, L.qn, L.qnorm);
   for (int i = 0; i < 3; ++i)
@@ -54,20 +63,6 @@ inline void project_one(const Camera& cam, const S* mean, const S* quat, const S
     for (int j = 0; j < 3; ++j)
       L.cov[3 * i + j] = L.M[3 * i] * L.M[3 * j] + L.M[3 * i + 1] * L.M[3 * j + 1] +
                          L.M[3 * i + 2] * L.M[3 * j + 2];
-  // The Jacobian is taken no nearer than the support's reach along the view axis (decision 0120;
-  // functional/projection.py).
-  const S reach = std::sqrt(S(cam.support2) * L.cov[8]);
-  L.floored = reach > L.zc;
-  L.zj = L.floored ? reach : L.zc;
-  const S lox = (-cx - S(0.15) * cam.width) / fx, hix = (cam.width - cx + S(0.15) * cam.width) / fx;
-  const S loy = (-cy - S(0.15) * cam.height) / fy, hiy = (cam.height - cy + S(0.15) * cam.height) / fy;
-  const S rx = L.mc[0] / L.zj, ry = L.mc[1] / L.zj;
-  L.tx_in = rx >= lox && rx <= hix;
-  L.ty_in = ry >= loy && ry <= hiy;
-  L.tx = std::min(std::max(rx, lox), hix);
-  L.ty = std::min(std::max(ry, loy), hiy);
-  L.J[0] = fx / L.zj, L.J[1] = 0, L.J[2] = -fx * L.tx / L.zj;
-  L.J[3] = 0, L.J[4] = fy / L.zj, L.J[5] = -fy * L.ty / L.zj;
   S JS[6];  // J @ cov
   for (int i = 0; i < 2; ++i)
     for (int j = 0; j < 3; ++j)
@@ -199,15 +194,6 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
       for (int j = 0; j < 3; ++j)
         vJ[3 * i + j] = GJ[3 * i] * L.cov[j] + GJ[3 * i + 1] * L.cov[3 + j] +
                         GJ[3 * i + 2] * L.cov[6 + j];
-    // J's depth zj: the centre's clamped depth, or the support's reach where that is further
-    const S zj = L.zj, zj2 = zj * zj;
-    S vzj = -fx / zj2 * vJ[0] + fx * L.tx / zj2 * vJ[2] - fy / zj2 * vJ[4] + fy * L.ty / zj2 * vJ[5];
-    const S vtx = -fx / zj * vJ[2], vty = -fy / zj * vJ[5];
-    S vxj = 0, vyj = 0;
-    if (L.tx_in) vxj = vtx / zj, vzj += -vtx * L.mc[0] / zj2;
-    if (L.ty_in) vyj = vty / zj, vzj += -vty * L.mc[1] / zj2;
-    // reach = sqrt(support2 cov22), cov22 = sum_k M[2][k]^2
-    const S vcov22 = L.floored ? vzj * S(cam.support2) / (2 * zj) : S(0);
     S JGJ[9];  // J^T Gs J
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) JGJ[3 * i + j] = L.J[i] * GJ[j] + L.J[3 + i] * GJ[3 + j];
@@ -216,7 +202,6 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
       for (int j = 0; j < 3; ++j)
         vM[3 * i + j] = JGJ[3 * i] * L.M[j] + JGJ[3 * i + 1] * L.M[3 + j] +
                         JGJ[3 * i + 2] * L.M[6 + j];
-    for (int j = 0; j < 3; ++j) vM[6 + j] += 2 * L.M[6 + j] * vcov22;
     // M = Rc diag(s), Rc = Rw R
     const S* sc = s + 3 * n;
     S vRc[9];
@@ -247,9 +232,12 @@ std::vector<at::Tensor> project_backward_t(const at::Tensor& means, const at::Te
     for (int i = 0; i < 4; ++i) vq[4 * n + i] = (vqn[i] - (qclamped ? 0 : L.qn[i] * qdot)) * qinv;
     // J and means2d -> camera-space centre
     const S zc = L.zc, zc2 = zc * zc;
-    S vx = gu * fx / zc + vxj, vy = gv * fy / zc + vyj;
+    S vx = gu * fx / zc, vy = gv * fy / zc;
     S vzc = -gu * fx * L.mc[0] / zc2 - gv * fy * L.mc[1] / zc2;
-    if (!L.floored) vzc += vzj;  // else the reach took it (vcov22)
+    vzc += -fx / zc2 * vJ[0] + fx * L.tx / zc2 * vJ[2] - fy / zc2 * vJ[4] + fy * L.ty / zc2 * vJ[5];
+    const S vtx = -fx / zc * vJ[2], vty = -fy / zc * vJ[5];
+    if (L.tx_in) vx += vtx / zc, vzc += -vtx * L.mc[0] / zc2;
+    if (L.ty_in) vy += vty / zc, vzc += -vty * L.mc[1] / zc2;
     S vz = gdp[n] + (L.mc[2] >= S(cam.near) ? vzc : S(0));
     if (gmc) vx += gmc[3 * n], vy += gmc[3 * n + 1], vz += gmc[3 * n + 2];
     for (int j = 0; j < 3; ++j)
