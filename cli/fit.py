@@ -218,6 +218,9 @@ def _fit_and_report(scene, out, cfg, sources, overwrite, resume, resume_options,
         s, run_cfg = info["scene"], info["config"]
         for w in s.warnings:  # what the loader read past without using
             console.print(f"[yellow]warning: {w}")
+        if s.test_listed and sources.get("test_every") == "command line":
+            console.print(f"[yellow]warning: --test-every {run_cfg.test_every}: {s.root} lists its own test views "
+                          "(transforms_test.json); ignored")
         console.print(
             f"[bold]splatk fit[/] {s.root}: {len(s.train)} train / {len(s.test)} test views "
             f"{s.train[0].width}x{s.train[0].height}, {info['model'].num_primitives:,} initial primitives, "

@@ -327,6 +327,7 @@ def test_preset_that_does_not_exist(demo, tmp_path):
     (["--primitive", "planar", "--kernel", "learned", "--k", "4"], "--k 4", "--primitive volumetric"),
     (["--kernel-weights", "w.pt"], "--kernel-weights", "--kernel learned"),
     (["--color", "sb", "--sh-degree", "1"], "--sh-degree 1", "--color sh"),
+    (["--test-every", "3", "--eval-split", "all"], "--test-every 3", "--eval-split held-out"),
 ])
 def test_flag_the_chosen_model_has_no_use_for(flags, named, fix, demo, tmp_path):
     """A flag typed for another kernel or colour model is one error line, not silently dropped
@@ -346,6 +347,18 @@ def test_image_flag_the_chosen_kernel_has_no_use_for(flags, named, fix, demo, tm
     photo = next(demo.rglob("*.png"))
     expect_error(["image", photo, "--out", tmp_path / "img", "--iters", "2", "-q", *flags], named, fix)
     assert not (tmp_path / "img").exists()
+
+
+def test_test_every_on_a_scene_with_its_own_test_list_is_a_warning(demo, tmp_path):
+    """The demo scene lists its test views (transforms_test.json): a typed --test-every cannot
+    change them, so fit says so in one warning line and trains (a script over a whole dataset
+    passes one --test-every to every scene)."""
+    res = CliRunner().invoke(cli, [str(a) for a in fit(demo, tmp_path / "run", "--test-every", "3", "--iters", "2")])
+    assert res.exit_code == 0, res.output
+    warned = [ln for ln in res.output.splitlines() if ln.startswith("warning: --test-every 3")]
+    assert len(warned) == 1 and "transforms_test.json" in warned[0], res.output
+    quiet = CliRunner().invoke(cli, [str(a) for a in fit(demo, tmp_path / "run2", "--iters", "2")])
+    assert quiet.exit_code == 0 and "--test-every" not in quiet.output, quiet.output
 
 
 def test_preset_may_set_options_of_a_kernel_the_command_line_replaces(demo, tmp_path):

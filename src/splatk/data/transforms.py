@@ -300,4 +300,4 @@ def load_transforms(root: str | Path, downscale: float = 1.0, test_every: int = 
     cams = make_cameras(views, und, remaining, load_images, background, warnings)
     return Scene(root=root, train=cams[:len(train_f)], test=cams[len(train_f):], background=background,
                  points=torch.from_numpy(xyz.astype(np.float32)), point_colors=torch.from_numpy(rgb.astype(np.float32)),
-                 source="transforms", warnings=warnings)
+                 source="transforms", warnings=warnings, test_listed=len(per_file) == 2)

@@ -82,6 +82,8 @@ class Scene:
         source: short description of the loader ("colmap", "transforms").
         warnings: what the loader read past without using (e.g. dataset fields splatk does not
             use), one line each, for the caller to print.
+        test_listed: the dataset names its own test views (``transforms_test.json``), so
+            ``test_every`` had no say in the split.
     """
 
     root: Path
@@ -92,6 +94,7 @@ class Scene:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    test_listed: bool = False
 
     @property
     def cameras(self) -> list[Camera]:

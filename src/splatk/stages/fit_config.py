@@ -146,7 +146,8 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
         if key in opts:
             setattr(cfg, key, opts.pop(key))
     planar = cfg.primitive == "planar"
-    _check_flags_apply(opts, sources, cfg.kernel, planar, opts.get("color", cfg.color))
+    _check_flags_apply(opts, sources, cfg.kernel, planar, opts.get("color", cfg.color),
+                       opts.get("eval_split", cfg.eval_split))
     if "k" in opts:
         k = _read_k(opts.pop("k"), sources)
         if cfg.kernel == "learned" and not planar:  # the planar learned kernel has no k
@@ -246,7 +247,7 @@ def fit_config_from_options(options: dict, sources: dict | None = None,
     return cfg, notes
 
 
-def _check_flags_apply(opts: dict, sources: dict, kernel: str, planar: bool, color: str) -> None:
+def _check_flags_apply(opts: dict, sources: dict, kernel: str, planar: bool, color: str, eval_split: str) -> None:
     """A flag typed on the command line that the chosen kernel or colour model has no use for is an
     error, not silently dropped: `--kernel beta --k 4` would otherwise train Beta and say nothing.
     Presets and bench files may set options for kernels they do not pick, so only the command
@@ -255,7 +256,9 @@ def _check_flags_apply(opts: dict, sources: dict, kernel: str, planar: bool, col
     rules = (("k", learned and not planar, "is an option of the volumetric learned kernel",
               "use --primitive volumetric" if learned else "add --kernel learned"),
              ("kernel_weights", learned, "is an option of the learned kernel", "add --kernel learned"),
-             ("sh_degree", color == "sh", "is an option of the SH colour model", "add --color sh"))
+             ("sh_degree", color == "sh", "is an option of the SH colour model", "add --color sh"),
+             ("test_every", eval_split == "held-out", f"chooses held-out test views, and --eval-split {eval_split} "
+              "holds none out", "use --eval-split held-out"))
     for name, applies, problem, fix in rules:
         if name in opts and not applies and sources.get(name) == "command line":
             value = str(opts[name])
