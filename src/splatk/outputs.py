@@ -102,13 +102,14 @@ def user_entries(folder: Path) -> list[Path]:
 
 
 def check_output_dir(out: Path, kind: str, overwrite: bool, inputs: tuple | list = (),
-                     locked: bool = False) -> None:
+                     locked: bool = False, resumable: bool = False) -> None:
     """Refuse, touching nothing, an output folder that cannot be written as ``kind``.
 
     Refused: a protected path (:func:`refuse_protected`); a file; a folder another process is
     writing; a non-empty folder without ``overwrite``; with ``overwrite``, a non-empty folder that
     splatk did not write as ``kind``; a folder that cannot be created or written. ``locked``:
-    this process holds the folder's lock (the check is repeated under it).
+    this process holds the folder's lock (the check is repeated under it). ``resumable``: the
+    command has ``--resume``, so the fix names it.
     """
     out = Path(out)
     refuse_protected(out, inputs)
@@ -121,9 +122,9 @@ def check_output_dir(out: Path, kind: str, overwrite: bool, inputs: tuple | list
                              "wait for it to finish, or choose another --out")
         if user_entries(out):
             if not overwrite:
+                resume = "--resume to continue a run, " if resumable else ""
                 raise InputError(out, "output folder exists and is not empty",
-                                 "pass --overwrite to replace a splatk output, --resume to continue a run, "
-                                 "or choose another --out")
+                                 f"pass --overwrite to replace a splatk output, {resume}or choose another --out")
             marker = read_marker(out)
             if marker is None:
                 raise InputError(out, f"--overwrite replaces only folders splatk wrote, and this one has no "

@@ -209,7 +209,7 @@ def _run_fit(scene_path, out: Path, cfg, overwrite, resume, config_sources, on_s
     check_fit_config(cfg, config_sources)
     if scene_path is None:
         raise InputError(None, "no scene given", "pass the scene folder (or --resume to continue a run)")
-    check_output_dir(out, RUN_KIND, overwrite, inputs=[scene_path])  # refuse before any work
+    check_output_dir(out, RUN_KIND, overwrite, inputs=[scene_path], resumable=True)  # refuse before any work
     return _fit(scene_path, out, cfg, None, {}, config_sources, on_start, on_step, should_stop,
                 overwrite=overwrite, world=world, start=start)
 
