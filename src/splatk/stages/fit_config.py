@@ -257,8 +257,9 @@ def _check_flags_apply(opts: dict, sources: dict, kernel: str, planar: bool, col
               "use --primitive volumetric" if learned else "add --kernel learned"),
              ("kernel_weights", learned, "is an option of the learned kernel", "add --kernel learned"),
              ("sh_degree", color == "sh", "is an option of the SH colour model", "add --color sh"),
-             ("test_every", eval_split == "held-out", f"chooses held-out test views, and --eval-split {eval_split} "
-              "holds none out", "use --eval-split held-out"))
+             ("test_every", eval_split == "held-out",
+              f"chooses held-out test views, and --eval-split {eval_split} holds none out",
+              "use --eval-split held-out"))
     for name, applies, problem, fix in rules:
         if name in opts and not applies and sources.get(name) == "command line":
             value = str(opts[name])
