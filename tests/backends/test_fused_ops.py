@@ -8,7 +8,7 @@ import torch
 
 from splatk import backends
 from splatk.backends import cpu_native
-from splatk.functional.projection import project_ellipsoids
+from splatk.functional.projection import project_ellipsoids, quats_to_rotmats
 from splatk.functional.sh import eval_sh
 from splatk.metrics.ssim import ssim
 
@@ -63,6 +63,12 @@ def test_ssim_gradcheck():
     assert torch.autograd.gradcheck(lambda a: ssim_mean_fused(a, y, window_size=5), (x,))
 
 
+def _reach(means, quats, scales, vm, support):
+    """The support's reach along the view axis: support x the camera-space sigma in depth."""
+    M = (vm[:3, :3] @ quats_to_rotmats(quats.detach())) * scales.detach()[:, None, :]
+    return support * (M[:, 2] ** 2).sum(-1).sqrt()
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("support", [3.0, 1.0])
 def test_projection_matches_reference(dtype, support):
@@ -98,13 +104,6 @@ def test_projection_matches_reference(dtype, support):
     g_ref = torch.autograd.grad(loss(*refs), (means, quats, scales))
     for a, b in zip(g_fused, g_ref):
         assert _rel(a, b) < 20 * TOL[dtype]
-
-
-def _reach(means, quats, scales, vm, support):
-    """The support's reach along the view axis: support x the camera-space sigma in depth."""
-    from splatk.functional.projection import quats_to_rotmats
-    M = (vm[:3, :3] @ quats_to_rotmats(quats.detach())) * scales.detach()[:, None, :]
-    return support * (M[:, 2] ** 2).sum(-1).sqrt()
 
 
 def test_projection_gradcheck_where_the_support_reaches_the_camera():

@@ -106,9 +106,10 @@ def test_grid_flag_that_would_change_nothing(flags, named, said, scene, tmp_path
 def test_k_without_kernel_flags_applies_to_the_bench_files_learned_methods():
     """--k alone re-sets the k of a bench file's learned methods: allowed when it has some."""
     methods = [{"kernel": "gaussian"}, {"kernel": "learned", "k": 8}]
-    check_grid_flags((), ("2",), None, (), (), (), (), False, methods)
+    flags = dict(kernel=(), ks=("2",), weights=None, color=(), budget=(), budget_bytes=(), only=(), stability=False)
+    check_grid_flags(**flags, methods=methods)
     with pytest.raises(click.BadParameter, match="no method of the grid is learned"):
-        check_grid_flags((), ("2",), None, (), (), (), (), False, methods[:1])
+        check_grid_flags(**flags, methods=methods[:1])
 
 
 def test_bad_scene_is_one_line_error(tmp_path):
