@@ -43,7 +43,8 @@ is in OUT it pairs each learned cell (its run folder, else its row in the result
 per scene the seeds, each kernel's mean and the mean difference with its standard error over the
 seeds (the spread of the differences over sqrt(seeds)); then the average
 of the scenes' mean differences per set. Writes OUT/learned_validation[_30k]_over_seeds.json
-(``_over_seeds_vs_BASELINE.json`` for another baseline). ``OUT = benchmarks/results`` tabulates
+(``_over_seeds_vs_BASELINE.json`` for another baseline) and a chart of every seed's difference
+beside the means (the same name, .png and .svg). ``OUT = benchmarks/results`` tabulates
 the committed result files.
 """
 from __future__ import annotations
@@ -59,6 +60,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import yaml
+
+from splatk.bench.charts import draw_seed_gaps
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data"
@@ -238,7 +241,8 @@ def over_seeds(out: Path, protocol: str, scenes: list[str], kernels: list[str], 
             per_scene.append({
                 "scene": scene, "kernel": kernel, "set": set_of(scene),
                 "seeds": [s for s, _, _ in pairs], "baseline_mean": statistics.mean(g for _, g, _ in pairs),
-                "kernel_mean": statistics.mean(o for _, _, o in pairs), "gap_mean": statistics.mean(gaps),
+                "kernel_mean": statistics.mean(o for _, _, o in pairs), "gaps": gaps,
+                "gap_mean": statistics.mean(gaps),
                 # None for one seed: no spread to measure
                 "gap_standard_error": statistics.stdev(gaps) / len(gaps) ** 0.5 if len(gaps) > 1 else None})
     averages = []
@@ -291,7 +295,11 @@ def main() -> None:
         doc = over_seeds(args.out, args.protocol, scenes, kernels, args.baseline)
         print_over_seeds(doc)
         against = "" if args.baseline == "gaussian" else f"_vs_{args.baseline}"
-        (args.out / f"{file_stem(args.protocol)}_over_seeds{against}.json").write_text(json.dumps(doc, indent=1))
+        stem = args.out / f"{file_stem(args.protocol)}_over_seeds{against}"
+        args.out.mkdir(parents=True, exist_ok=True)
+        stem.with_suffix(".json").write_text(json.dumps(doc, indent=1))
+        for path in draw_seed_gaps(doc, stem):
+            print(f"wrote {path}")
         return
     cells = [(s, k) for s in scenes for k in kernels]
     if not args.table_only:

@@ -136,7 +136,27 @@ def test_learned_validation_over_seeds_reads_saved_rows(tmp_path):
     assert doc["seeds_found"] == [0, 1]
     (row,) = doc["per_scene"]
     assert row["seeds"] == [0, 1] and row["set"] == "validation"
+    assert row["gaps"] == [1.0, 0.5]
     assert math.isclose(row["gap_mean"], 0.75) and math.isclose(row["gap_standard_error"], 0.25)
+
+
+def test_learned_validation_over_seeds_charts_every_seed(tmp_path, monkeypatch):
+    """--over-seeds draws a line per (scene, kernel) with a dot per seed beside the JSON; a one-seed
+    scene (no standard error) is drawn too."""
+    script = load_script(next(s for s in SCRIPTS if s.stem == "learned_validation"))
+    for seed, (gaussian, learned) in enumerate([(24.0, 25.0), (23.0, 23.5)]):
+        rows = [_row("kangaroo", "gaussian", gaussian), _row("kangaroo", "learned", learned)]
+        if seed == 0:
+            rows += [_row("cup", "gaussian", 30.0), _row("cup", "learned", 30.25)]
+        script.result_file(tmp_path, "30k", seed).write_text(json.dumps({"rows": rows}))
+    monkeypatch.setattr("sys.argv", ["learned_validation.py", str(tmp_path), "--protocol", "30k", "--over-seeds",
+                                     "--scenes", "kangaroo,cup"])
+    script.main()
+    doc = json.loads((tmp_path / "learned_validation_30k_over_seeds.json").read_text())
+    assert [(r["scene"], r["gaps"]) for r in doc["per_scene"]] == [("kangaroo", [1.0, 0.5]), ("cup", [0.25])]
+    chart = tmp_path / "learned_validation_30k_over_seeds.png"
+    assert chart.stat().st_size > 1000 and chart.with_suffix(".svg").exists()
+    assert script.draw_seed_gaps({**doc, "per_scene": []}, tmp_path / "empty") == []
 
 
 def test_learned_validation_over_seeds_against_another_baseline(tmp_path):

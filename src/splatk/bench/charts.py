@@ -1,4 +1,5 @@
-"""Charts of `splatk bench`: PSNR against cost with the Pareto front, and the stability heat map.
+"""Charts of `splatk bench`: PSNR against cost with the Pareto front, the stability heat map, and
+one kernel's lead over another seed by seed.
 
 Drawn on matplotlib's Agg canvas directly (no pyplot, so no global backend state), each as PNG
 and SVG.
@@ -183,4 +184,33 @@ def draw_stability_heatmap(matrix: dict, stem: str | Path) -> list[Path]:
     ax.set_xlabel("hatched: NaN rollback(s); red box: ended below its initial PSNR (diverged);\n"
                   f"orange dashed: > {matrix.get('collapse_db', 3):g} dB below the best kernel of its "
                   "column; grey: not run", fontsize=7)
+    return _save(fig, Path(stem))
+
+
+def draw_seed_gaps(doc: dict, stem: str | Path) -> list[Path]:
+    """Each (scene, kernel) row of an over-seeds comparison as a line: a dot per seed at that seed's
+    test-PSNR difference to the baseline, a black diamond at the mean with its standard error, so
+    the seed spread is seen beside the mean it is summed into. Validation rows above tuning rows."""
+    rows = [r for r in doc["per_scene"] if r.get("gaps")]
+    if not rows:
+        return []
+    rows = sorted(rows, key=lambda r: r["set"] != "validation")  # stable: keeps the scenes' order
+    colors = {"validation": "tab:blue", "tuning": "tab:orange"}
+    fig = _figure(7.5, 0.42 * len(rows) + 1.6)
+    ax = fig.add_subplot(1, 1, 1)
+    for y, r in enumerate(rows):
+        ax.scatter(r["gaps"], [y] * len(r["gaps"]), s=22, color=colors.get(r["set"], "grey"), alpha=0.6,
+                   zorder=3)
+        ax.errorbar([r["gap_mean"]], [y], xerr=[r["gap_standard_error"] or 0.0], fmt="D", color="black",
+                    markersize=6, capsize=3, zorder=4)
+    ax.axvline(0.0, color="black", lw=0.8)
+    ax.set_yticks(range(len(rows)), [f"{r['scene']} · {r['kernel']} ({len(r['gaps'])})" for r in rows],
+                  fontsize=8)
+    ax.invert_yaxis()
+    ax.grid(True, axis="x", alpha=0.3)
+    ax.set_xlabel(f"test PSNR − {doc['baseline']} (dB); a dot per seed (seeds in brackets), "
+                  "diamond: mean ± standard error", fontsize=8)
+    handles = [_dot(c, name) for name, c in colors.items() if any(r["set"] == name for r in rows)]
+    ax.legend(handles=handles, fontsize=8, loc="best")
+    ax.set_title(f"protocol {doc['protocol']}: each kernel against {doc['baseline']}, seed by seed", fontsize=10)
     return _save(fig, Path(stem))
