@@ -61,15 +61,30 @@ def valid(value, rule) -> bool:
     return value >= lo and (hi is None or value <= hi)
 
 
+def what_is_wrong(value, rule) -> str:
+    """Why ``value`` fails ``rule``, in the words of the error line (the fix then names the rule)."""
+    kind = rule[0]
+    if kind == "choice":
+        return "not a known value"
+    if kind == "bool":
+        return "not true or false"
+    numeric = isinstance(value, int) if kind == "int" else isinstance(value, (int, float))
+    if isinstance(value, bool) or not numeric:
+        return "not a whole number" if kind == "int" else "not a number"
+    return "out of range" if math.isfinite(value) else "not a finite number"
+
+
 def option_error(name: str, value, problem: str, fix: str, source: str | None = None) -> InputError:
     where = f" (from the {source})" if source and source not in ("default", "command line") else ""
-    return InputError(None, f"--{name.replace('_', '-')} {value!r}{where}: {problem}", fix)
+    # a float as the user typed it ("0", not click's "0.0")
+    shown = f"{value:g}" if isinstance(value, float) and math.isfinite(value) else repr(value)
+    return InputError(None, f"--{name.replace('_', '-')} {shown}{where}: {problem}", fix)
 
 
 def check_value(name: str, value, rule, sources: dict | None = None) -> None:
     """InputError unless ``value`` satisfies ``rule`` (``name``: the flag, without dashes)."""
     if not valid(value, rule):
-        raise option_error(name, value, f"must be {describe(rule)}", f"give {describe(rule)}",
+        raise option_error(name, value, what_is_wrong(value, rule), f"give {describe(rule)}",
                            (sources or {}).get(name))
 
 

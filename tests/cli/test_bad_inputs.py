@@ -336,6 +336,19 @@ def test_flag_the_chosen_model_has_no_use_for(flags, named, fix, demo, tmp_path)
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize("flags, problem, fix", [
+    (["--downscale", "0"], "--downscale 0: out of range", "give a number from 1 to"),
+    (["--iters", "0"], "--iters 0: out of range", "give a whole number from 1 to"),
+])
+def test_number_out_of_its_range_names_the_range_once(flags, problem, fix, demo, tmp_path):
+    """A number out of range is shown as typed (`0`, not click's `0.0`), the problem says what is
+    wrong and the fix gives the range, instead of the range twice."""
+    m = expect_error(fit(demo, tmp_path / "run", *flags), flags[0], fix)
+    assert m.string.startswith(f"splatk: error: {problem} ("), m.string
+    assert m["fix"].count(" from ") == 1 and m.string.count(" from ") == 1, m.string
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("flags, named, fix", [
     (["--kernel", "gaussian", "--grid", "4"], "--grid", "--kernel learned"),
     (["--kernel", "gabor", "--exact"], "--exact", "--kernel learned"),

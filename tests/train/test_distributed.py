@@ -225,7 +225,7 @@ def test_ranks_with_different_settings_are_an_input_error(scene, tmp_path):
 @pytest.mark.parametrize("args, problem", [
     (["--nproc", "3", "--batch-views", "2"], "more processes than views per step"),
     (["--nproc", "2", "--budget", "auto"], "--nproc 1 with --budget auto"),
-    (["--nproc", "0"], "must be a whole number from 1"),
+    (["--nproc", "0"], "out of range (give a whole number from 1"),
 ])
 def test_bad_process_counts_are_input_errors(scene, tmp_path, args, problem):
     res = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(tmp_path / "run"), "--iters", "10", *args])
