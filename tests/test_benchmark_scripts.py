@@ -478,3 +478,28 @@ def test_learned_view_support_weighs_and_leaves_out_what_it_is_asked():
     blank = bg.expand_as(fitted)
     assert script.psnr_without(model, backend, new, bg, ~none) == pytest.approx(float(metrics.psnr(blank, new.image_float())), abs=1e-3)
     assert torch.equal(model.render(new, bg, backend=backend).image.clamp(0, 1), fitted)  # opacities restored
+
+
+def test_train_view_hold_measures_a_run_both_ways_and_leaves_it_as_it_was(tmp_path):
+    """A learned run measured without and with its train cameras: its train views read the same (the
+    hold never binds there) and the run folder is not written to."""
+    from splatk.data.synthetic import make_demo_scene
+    from splatk.stages.fit import FitConfig, run_fit
+    from splatk.train.trainer import TrainConfig
+
+    script = load_script(next(s for s in SCRIPTS if s.stem == "train_view_hold"))
+    scene = make_demo_scene(tmp_path / "scene", num_views=8, size=24)
+    cfg = FitConfig(kernel="learned", sh_degree=1, backend="torch", threads=1,
+                    train=TrainConfig(iters=5, budget=100, init="random", backend="torch"))
+    run = run_fit(scene, tmp_path / "run", cfg).path
+    files = sorted(p.name for p in run.iterdir())
+    row = script.measure(run, "train")
+    assert len(row["views"]) > 0 and abs(row["change"]) < 1e-4
+    # fit now keeps the cameras: the "fitted" copy leaves them out, the held one keeps the scene's
+    from splatk.models.io import load_model
+    assert load_model(run / "model.pt")[0].train_views is not None
+    assert load_model(script.model_copy(run, tmp_path / "without", False) / "model.pt")[0].train_views is None
+    held = load_model(script.model_copy(run, tmp_path / "with", True) / "model.pt")[0]
+    assert len(held.train_views) == len(row["views"])
+    assert all(abs(v["held"] - v["fitted"]) < 1e-4 for v in row["views"])
+    assert sorted(p.name for p in run.iterdir()) == files

@@ -12,6 +12,7 @@ from ..colors import make_color_model
 from ..kernels import make_kernel
 from ..torch_files import load_torch_file
 from .planar import PlanarModel
+from .train_views import TrainViews
 from .volumetric import SplatModel
 
 FORMAT_VERSION = 1
@@ -64,7 +65,10 @@ def model_spec(model: SplatModel | PlanarModel, kernel_options: dict, color_opti
     }
 
 
-def save_model(model: SplatModel, path, spec: dict, meta: dict | None = None) -> Path:
+def save_model(model: SplatModel, path, spec: dict, meta: dict | None = None,
+               train_cameras: list | None = None) -> Path:
+    """The model file; ``train_cameras`` (the views it was fitted to) are kept with it, else the
+    model's own ``train_views`` where it has them."""
     obj = {
         "format": "splatk-model",
         "version": FORMAT_VERSION,
@@ -73,6 +77,9 @@ def save_model(model: SplatModel, path, spec: dict, meta: dict | None = None) ->
         "kernel_state": {k: v.cpu() for k, v in model.kernel.state_dict().items()},
         "meta": meta or {},
     }
+    views = TrainViews.of(train_cameras) if train_cameras else getattr(model, "train_views", None)
+    if views is not None:
+        obj["train_views"] = views.state()
     return atomic_torch_save(obj, path)
 
 
@@ -115,6 +122,8 @@ def load_model(path) -> tuple[SplatModel, dict]:
         raise InputError(path, "not a splatk model file")
     try:
         model = build_model(obj["spec"], obj["prims"], obj.get("kernel_state"))
+        if obj.get("train_views") is not None and isinstance(model, SplatModel):
+            model.train_views = TrainViews.from_state(obj["train_views"])
         meta = {"spec": obj["spec"], **obj.get("meta", {})}
     except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as e:  # hand-edited, other version
         detail = (str(e).strip().splitlines() or [""])[0][:120]

@@ -9,6 +9,7 @@ from ..backends import Backend, RasterOutput
 from ..colors import ColorModel, make_color_model
 from ..kernels import Kernel, ViewContext, make_kernel
 from .base import PrimitiveModel
+from .train_views import TrainViews, hold_distance, nearest_drawing_distance
 
 #: geometric per-primitive parameters every volumetric model has (raw, pre-activation)
 GEOMETRY_PARAMS = ("means", "log_scales", "quats", "opacity_logits")
@@ -53,6 +54,21 @@ class SplatModel(PrimitiveModel):
         prims.update(kernel.init_primitive_params(n, torch.device("cpu")))
         return cls(kernel, color, prims)
 
+    #: the views the model was fitted to, from its file (None while training and in files from
+    #: before them): a drawn view holds Φ_proj's distances to theirs (models/train_views.py)
+    train_views: TrainViews | None = None
+    _nearest_cache: tuple | None = None
+
+    def nearest_train_distances(self, backend: Backend) -> torch.Tensor:
+        """[N] :func:`nearest_drawing_distance` of the current geometry (kept until it changes)."""
+        geometry = (self.prims["means"], self.prims["quats"], self.prims["log_scales"])
+        key = (backend.name, self.prims["means"].device, *((id(t), t._version) for t in geometry))
+        if self._nearest_cache is None or self._nearest_cache[0] != key:
+            nearest = nearest_drawing_distance(self.prims["means"], self.prims["quats"], self.scales,
+                                               self.train_views, backend, self.kernel.support_sigmas)
+            self._nearest_cache = (key, nearest)
+        return self._nearest_cache[1]
+
     # ---- rendering ----------------------------------------------------------------------
     def render(
         self,
@@ -83,8 +99,10 @@ class SplatModel(PrimitiveModel):
         if not self.kernel.needs_view:
             view = ViewContext(None, None, None, backend)
         else:
-            view = ViewContext(proj.means_cam.index_select(0, idx), scales.index_select(0, idx),
-                               proj.rotmats_cam.index_select(0, idx), backend)
+            means_cam = proj.means_cam.index_select(0, idx)
+            if self.train_views is not None:  # no nearer than the train views showed Φ_proj (decision 0121)
+                means_cam = hold_distance(means_cam, self.nearest_train_distances(backend).index_select(0, idx))
+            view = ViewContext(means_cam, scales.index_select(0, idx), proj.rotmats_cam.index_select(0, idx), backend)
         profile = self.kernel.profile(vis, view)
         means2d, conics = proj.means2d.index_select(0, idx), proj.conics.index_select(0, idx)
         if means2d.requires_grad:  # density control reads the view-space gradient (3DGS ADC)

@@ -437,7 +437,7 @@ class FitRun:
         if interrupted:
             raise KeyboardInterrupt
         trainer = self.trainer
-        folder.save_model(trainer.model)
+        folder.save_model(trainer.model, trainer.scene.train)
         train_seconds = trainer.elapsed
         if auto is not None and auto.refitting:  # the selection is part of what the run cost
             train_seconds += auto.selection_seconds or 0.0

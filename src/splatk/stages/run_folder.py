@@ -89,9 +89,10 @@ class RunFolder:
     def close_log(self) -> None:
         self._log.close()
 
-    def save_model(self, model) -> None:
+    def save_model(self, model, train_cameras: list | None = None) -> None:
+        """model.pt, with the cameras it was fitted to (decision 0121's hold reads them)."""
         path = self.out / "model.pt"
-        self._save(lambda: save_model(model, path, self.spec, self.meta), path)
+        self._save(lambda: save_model(model, path, self.spec, self.meta, train_cameras), path)
 
     def write_summary(self, summary: dict) -> None:
         (self.out / "fit.json").write_text(json.dumps(summary, indent=2))
